@@ -1,0 +1,147 @@
+"""The `Morphology` value: one UNIMAL robot, a sphere torso with a tree of capsule limbs.
+
+Everything the rest of the project knows about a robot goes through this value: the reader builds it from
+MetaMorph files, the generator and the variants make new ones, the MJCF writer and the simulation consume it.
+It is immutable (tuples of frozen dataclasses); change it with `dataclasses.replace`.
+
+Conventions (see ../shared/spec/unimal.md):
+- lengths in metres, joint ranges in degrees (the files use `compiler angle="degree"`);
+- a limb's body frame is never rotated, so body frame = world frame at the rest pose;
+- `limbs` are in MuJoCo body order (depth-first document order of the robot file), so a parent always comes
+  before its children and the policy's token order is torso, limbs[0], limbs[1], ...;
+- a limb's capsule runs from its body origin to `tip`; joints are written x before y.
+"""
+from __future__ import annotations
+
+import dataclasses
+from typing import Iterator
+
+import numpy as np
+
+TORSO = -1            # `Limb.parent` of a limb attached to the torso
+MAX_LIMBS = 10        # design-space limit (DERL LIMB.MAX_LIMBS)
+MAX_JOINTS_PER_LIMB = 2
+MAX_NODES = 12        # policy tokens: torso + 10 limbs + at least one padding token (MetaMorph MAX_LIMBS)
+TORSO_RADIUS = 0.1
+LIMB_RADIUS = 0.05
+JOINT_AXES = ("x", "y")
+
+Vec3 = tuple[float, float, float]
+
+
+@dataclasses.dataclass(frozen=True)
+class Joint:
+    """A hinge joint of a limb. `kind` is "x" or "y" (joint name `limbx/k` or `limby/k`): the joint slot it
+    fills in the observation and action layout."""
+    kind: str
+    pos: Vec3                   # body frame
+    axis: Vec3                  # body frame, as written (4 decimals in DERL files)
+    range: tuple[float, float]  # degrees, lo < hi
+    gear: float                 # motor gear; torque = gear * ctrl, ctrl in [-1, 1]
+    armature: float = 1.0       # the template's `normal_joint` defaults
+    damping: float = 1.0
+    stiffness: float = 1.0
+
+
+@dataclasses.dataclass(frozen=True)
+class Limb:
+    """A capsule limb `limb/<id>`. `parent` is an index into `Morphology.limbs`, or TORSO."""
+    id: int
+    parent: int
+    pos: Vec3                   # body position in the parent's frame
+    tip: Vec3                   # capsule `fromto` end; the capsule starts at the body origin
+    joints: tuple[Joint, ...]   # 1 or 2, "x" before "y"
+    radius: float = LIMB_RADIUS
+    density: float = 1000.0
+
+    @property
+    def name(self) -> str:
+        return f"limb/{self.id}"
+
+    @property
+    def length(self) -> float:
+        """Capsule segment length (r + h in DERL's notation)."""
+        return float(np.linalg.norm(self.tip))
+
+    def joint(self, kind: str) -> Joint | None:
+        for j in self.joints:
+            if j.kind == kind:
+                return j
+        return None
+
+
+@dataclasses.dataclass(frozen=True)
+class Morphology:
+    """A UNIMAL robot. `height` is the torso's standing z as written in the robot file (z0, floor at 0)."""
+    name: str
+    height: float
+    limbs: tuple[Limb, ...]
+    torso_density: float = 1000.0
+    torso_radius: float = TORSO_RADIUS
+    mirror_pairs: tuple[tuple[int, int], ...] = ()  # limb ids grown together as mirror images
+
+    # ---- sizes -------------------------------------------------------------------------------------------
+    @property
+    def num_limbs(self) -> int:
+        return len(self.limbs)
+
+    @property
+    def num_nodes(self) -> int:
+        """Policy tokens used: torso + limbs."""
+        return 1 + len(self.limbs)
+
+    @property
+    def dof(self) -> int:
+        return sum(len(l.joints) for l in self.limbs)
+
+    # ---- tree --------------------------------------------------------------------------------------------
+    def children(self, index: int) -> list[int]:
+        """Indices of the limbs attached to limb `index` (or to the torso for TORSO)."""
+        return [i for i, l in enumerate(self.limbs) if l.parent == index]
+
+    def depth(self, index: int) -> int:
+        """1 for a limb on the torso, 2 for its children, ..."""
+        d = 0
+        while index != TORSO:
+            index = self.limbs[index].parent
+            d += 1
+        return d
+
+    @property
+    def tree_depth(self) -> int:
+        """Depth of the deepest limb below the torso (0 for a bare torso)."""
+        return max((self.depth(i) for i in range(len(self.limbs))), default=0)
+
+    def index_of(self, limb_id: int) -> int:
+        for i, l in enumerate(self.limbs):
+            if l.id == limb_id:
+                return i
+        raise KeyError(f"{self.name}: no limb with id {limb_id}")
+
+    def joints(self) -> Iterator[tuple[int, Joint]]:
+        """(limb index, joint) in MuJoCo joint order = actuator order."""
+        for i, l in enumerate(self.limbs):
+            for j in l.joints:
+                yield i, j
+
+    def rest_positions(self) -> np.ndarray:
+        """World positions of the limb body origins at the rest pose, torso at (0, 0, height). Shape (L, 3)."""
+        out = np.zeros((len(self.limbs), 3))
+        for i, l in enumerate(self.limbs):
+            base = np.array([0.0, 0.0, self.height]) if l.parent == TORSO else out[l.parent]
+            out[i] = base + np.asarray(l.pos)
+        return out
+
+    # ---- mass --------------------------------------------------------------------------------------------
+    def limb_mass(self, index: int) -> float:
+        """Capsule mass as MuJoCo >= 2.1 computes it: density * (pi r^2 L + 4/3 pi r^3)."""
+        l = self.limbs[index]
+        return l.density * (np.pi * l.radius**2 * l.length + 4.0 / 3.0 * np.pi * l.radius**3)
+
+    @property
+    def torso_mass(self) -> float:
+        return self.torso_density * 4.0 / 3.0 * np.pi * self.torso_radius**3
+
+    @property
+    def total_mass(self) -> float:
+        return self.torso_mass + sum(self.limb_mass(i) for i in range(len(self.limbs)))
