@@ -71,13 +71,15 @@ def to_mjcf(m: Morphology, *, sites: bool = False, floor: bool = False, z_offset
         lines.append(f'{indent}  <geom name="limb/{l.id}" fromto="0 0 0 {_vec(l.tip)}" size="{_num(l.radius)}" '
                      f'density="{_num(l.density)}"/>')
         if sites:
+            # DERL's sites: v(r + h/2), v(r + h) and v(2r + h) along the limb, each component rounded to 2
+            # decimals; the segment length r + h is the nominal one (0.25/0.35/0.45), not |tip| of the rounded tip
             tip = np.asarray(l.tip)
-            length = np.linalg.norm(tip)
-            lines.extend([
-                f'{indent}  <site name="limb/mid/{l.id}" pos="{_vec(np.round(tip * (length + l.radius) / (2 * length), 2))}"/>',
-                f'{indent}  <site name="limb/btm/{l.id}" pos="{_vec(tip)}"/>',
-                f'{indent}  <site name="limb/btm_pos/{l.id}" pos="{_vec(np.round(tip * (length + l.radius) / length, 2))}"/>',
-            ])
+            unit = tip / np.linalg.norm(tip)
+            seg = round(float(np.linalg.norm(tip)) / 0.05) * 0.05
+            site = lambda d: _vec(np.round(d * unit, 2) + 0.0)
+            lines.extend([f'{indent}  <site name="limb/mid/{l.id}" pos="{site((seg + l.radius) / 2)}"/>',
+                          f'{indent}  <site name="limb/btm/{l.id}" pos="{_vec(tip)}"/>',
+                          f'{indent}  <site name="limb/btm_pos/{l.id}" pos="{site(seg + l.radius)}"/>'])
         for c in m.children(index):
             write(c, indent + "  ")
         lines.append(f"{indent}</body>")
