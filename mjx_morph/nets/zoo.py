@@ -1,0 +1,120 @@
+"""The model zoo: which `NetConfig` each architecture name stands for, and `make_model`.
+
+| arch            | per-limb path (each of actor and critic)                                                        |
+|-----------------|-------------------------------------------------------------------------------------------------|
+| metamorph       | Linear(52->D) * sqrt(D) -> 5 pre-norm self-attention layers -> decoder (MetaMorph*, §1)          |
+| modumorph       | HN-generated Linear(52->D) * sqrt(D) -> 5 fixed-attention layers -> HN-generated decoder (§2)    |
+| rmemo           | Linear([17 state, 2 prev action] -> D) * sqrt(D) -> LSTM(D) -> MetaMorph transformer, decoder    |
+|                 | (design A, §3: this network never sees the 35 context features); `context_mlp=True` adds the     |
+|                 | paper text's MLP(context) 35 -> D -> ReLU -> D to the LSTM output: +21,120 per network,           |
+|                 | +42,240 in all, 3,610,499 instead of the paper's 3,568,259 (which therefore has no such MLP)       |
+| rmomo           | HN-generated Linear([52 obs, 2 prev action] -> D) * sqrt(D) -> LSTM(D) -> ModuMorph (design B)   |
+| grumomo         | rmomo with a GRU                                                                                |
+| hyperrmomo      | ModuMorph whose hypernetwork reads (context code + LSTM state), the LSTM reading                |
+|                 | Linear([17 state, 2 prev action] -> D); the base network has no cell                              |
+| metamorph_plus  | metamorph + Linear(D->256) -> ReLU -> Linear(256->D) between embedding and transformer            |
+| modumorph_plus  | modumorph + the same two layers at the same place                                                |
+
+Design choices where the spec leaves a gap (architecture.md §5 "gaps"), all overridable by flags:
+- The cell's output REPLACES the embedding as the transformer input (`cell_residual=False`); the spec's
+  design B says the LSTM output "feeds" the transformer.
+- sqrt(D) (EMBEDDING_SCALE) stays on the embedding, i.e. BEFORE the cell (`scale_after_cell=False`): the
+  cell is inserted after the embedding step exactly as the feed-forward model computes it.
+- The previous action is clipped to [-1, 1] (the executed control), masked and zeroed at resets (model.py).
+- The plus-variants put their two layers where the recurrent cell sits (per limb, between embedding and
+  transformer, output replacing the embedding, ReLU between the layers only), so that "recurrent cell vs
+  extra feed-forward depth at the same place" is the comparison. (+65,920 parameters per network.)
+- hyperrmomo: z_l(t) = c^HN_l + h_l(t) feeds every hypernetwork head (embedding and decoder), so the
+  generated layers change with the history. Adding (rather than concatenating) keeps the heads' sizes equal
+  to ModuMorph's. At init the heads' weights are zero, so it starts exactly like ModuMorph and the LSTM has
+  no influence (nor gradient) until the first update has moved the head weights (their gradient is
+  proportional to z, which contains h). The LSTM input is the R-MeMo path (Linear(19 -> D), unscaled); the
+  base embedding reads the 52 features and keeps the sqrt(D) scale.
+- The transformer layers of one network start equal (`clone_layer_init`), as PyTorch's TransformerEncoder
+  deep-copies one initialised layer; actor and critic are initialised independently.
+- GRU keeps PyTorch's two bias vectors, 3H(I + H + 2) parameters.
+"""
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, Sequence
+
+from .model import Model
+from .network import EMBED_INPUT_DIMS, NetConfig
+
+ARCHS: tuple[str, ...] = ("metamorph", "rmemo", "modumorph", "rmomo",
+                          "grumomo", "hyperrmomo", "metamorph_plus", "modumorph_plus")
+
+_STRUCTURE: dict[str, dict[str, Any]] = {
+    "metamorph": dict(base="meta"),
+    "rmemo": dict(base="meta", cell="lstm", embed_input="state_action"),
+    "modumorph": dict(base="modu"),
+    "rmomo": dict(base="modu", cell="lstm", embed_input="obs_action"),
+    "grumomo": dict(base="modu", cell="gru", embed_input="obs_action"),
+    "hyperrmomo": dict(base="modu", cell="lstm", cell_site="hyper"),
+    "metamorph_plus": dict(base="meta", plus_mlp=True),
+    "modumorph_plus": dict(base="modu", plus_mlp=True),
+}
+
+_SIZES = ("d_model", "num_layers", "num_heads", "ffn_dim", "plus_hidden", "hfield_size", "hfield_dims")
+_MODEL_FLAGS = ("action_std", "clip_prev_action", "clone_layer_init")
+
+
+def _allowed(arch: str) -> set[str]:
+    s = _STRUCTURE[arch]
+    keys = set(_SIZES) | set(_MODEL_FLAGS) | {"embed_scale"}
+    if s.get("cell"):
+        keys.add("hidden")
+        if s.get("cell_site", "base") == "base":
+            keys |= {"cell_residual", "scale_after_cell", "embed_input"}
+    if s["base"] == "meta":
+        keys.add("context_mlp")
+    if not s.get("cell"):
+        keys.add("embed_input")
+    return keys
+
+
+def make_model(arch: str, *, hfield: bool, decoder_dims: Sequence[int] = (), **overrides: Any) -> Model:
+    """Build an architecture of `ARCHS`.
+
+    hfield: the task has the 1410-value height map (csr, obstacle); decoder_dims: the task's hidden decoder
+    layers ([] for ft/incline, [64] csr, [64, 64] obstacle). `overrides`: sizes (d_model, num_layers,
+    num_heads, ffn_dim, hidden (= d_model), plus_hidden, hfield_dims, hfield_size) and flags (context_mlp,
+    cell_residual, scale_after_cell, embed_input, embed_scale, action_std, clip_prev_action,
+    clone_layer_init), each only where it applies; anything else is an error."""
+    if arch not in _STRUCTURE:
+        raise ValueError(f"unknown architecture {arch!r}; known: {', '.join(ARCHS)}")
+    allowed = _allowed(arch)
+    unknown = sorted(set(overrides) - allowed)
+    if unknown:
+        raise ValueError(f"{arch}: unknown or inapplicable option(s) {unknown}; allowed: {sorted(allowed)}")
+    ov = dict(overrides)
+    model_kw = {k: ov.pop(k) for k in _MODEL_FLAGS if k in ov}
+    hidden = ov.pop("hidden", None)
+    if hidden is not None and hidden != ov.get("d_model", NetConfig.d_model):
+        raise ValueError(f"{arch}: the recurrent hidden size ({hidden}) must equal d_model "
+                         f"({ov.get('d_model', NetConfig.d_model)}): the cell output is the transformer input")
+    if "embed_input" in ov and ov["embed_input"] not in EMBED_INPUT_DIMS:
+        raise ValueError(f"{arch}: embed_input must be one of {sorted(EMBED_INPUT_DIMS)}")
+    if "hfield_dims" in ov:
+        ov["hfield_dims"] = tuple(int(x) for x in ov["hfield_dims"])
+    net = NetConfig(**{**_STRUCTURE[arch], **ov}, hfield=bool(hfield), decoder_dims=tuple(int(x) for x in decoder_dims))
+    return Model(arch, net, **model_kw)
+
+
+def model_from_config(arch_cfg: Any, env_cfg: Any, **overrides: Any) -> Model:
+    """Build from Hydra configs: arch_cfg has `name` and `model` (flags), env_cfg has `hfield_obs` and
+    `decoder_dims` (experiments/conf/{arch,env}/*.yaml)."""
+    model_cfg = arch_cfg.get("model") or {}
+    if hasattr(model_cfg, "_metadata"):                     # an OmegaConf node
+        from omegaconf import OmegaConf
+        model_cfg = OmegaConf.to_container(model_cfg, resolve=True)
+    model_cfg = dict(model_cfg)
+    model_cfg.update(overrides)
+    return make_model(str(arch_cfg.name), hfield=bool(env_cfg.hfield_obs),
+                      decoder_dims=list(env_cfg.decoder_dims), **model_cfg)
+
+
+def describe(model: Model) -> str:
+    return f"{model.arch}: " + ", ".join(f"{f.name}={getattr(model.net, f.name)}"
+                                         for f in dataclasses.fields(model.net))
