@@ -17,9 +17,10 @@ $(STAMP): pyproject.toml
 test: $(STAMP)
 	$(BIN)/python -m pytest -q
 
+# the main job on the embedded default: a smoke run of R-MoMo on flat terrain with the shipped generated robots
 demo: $(STAMP)
-	$(BIN)/python -m experiments.robots generate --out runs/demo_robots --num 8 --seed 0
-	$(BIN)/python -m experiments.robots info runs/demo_robots
+	$(BIN)/python -m experiments.run preset=smoke env=ft arch=rmomo robots=gen/train run_dir=runs/demo
+	@echo "learning curve: runs/demo/learning_curve.png"
 
 bench: $(STAMP)
 	$(BIN)/python -m experiments.bench_robots

@@ -225,12 +225,8 @@ class Model:
                      for name, net in self.nets.items()}
             carry = carry0
             if burn_in:
-                burn = _flatten(jax.tree.map(lambda x: x[:burn_in], parts), 2)
-                xg_b = {name: jax.lax.stop_gradient(
-                            net.apply({"params": params[name]}, burn, cache[name], method="pre")["xg"]
-                        ).reshape(burn_in, b, NUM_TOKENS, -1) for name, net in self.nets.items()}
-                carry, _ = self._scan(params, carry, xg_b, resets[:burn_in], parts["node_mask"][:burn_in])
-                carry = jax.lax.stop_gradient(carry)
+                burn = jax.tree.map(lambda x: x[:burn_in], parts)
+                carry = self._advance(params, burn, carry0, resets[:burn_in], cache)
             xg_w = {name: p["xg"].reshape(w, b, NUM_TOKENS, -1) for name, p in pre_w.items()}
             final, hs = self._scan(params, carry, xg_w, resets[burn_in:], parts["node_mask"][burn_in:])
             for name, net in self.nets.items():
@@ -238,6 +234,28 @@ class Model:
                 outs[name] = net.apply({"params": params[name]}, pre_w[name], h, win, cache[name], method="post")
         mu, value = self._outputs(outs["actor"], outs["critic"], win)
         return mu.reshape(w, b, NUM_ACTIONS), value.reshape(w, b), final
+
+    def _advance(self, params: Params, parts: dict, carry0: Carry, resets: jax.Array, cache: dict) -> Carry:
+        """The cells alone over time-major `parts` [T, B, ...], under stop_gradient (the burn-in)."""
+        t, b = resets.shape
+        flat = _flatten(parts, 2)
+        xg = {name: jax.lax.stop_gradient(
+                  net.apply({"params": params[name]}, flat, cache[name], method="pre")["xg"]
+              ).reshape(t, b, NUM_TOKENS, -1) for name, net in self.nets.items()}
+        carry, _ = self._scan(params, carry0, xg, resets, parts["node_mask"])
+        return jax.lax.stop_gradient(carry)
+
+    def advance(self, params: Params, robots: Robots, obs_seq: Any, carry0: Carry, resets: jax.Array,
+                cache: dict | None = None) -> Carry:
+        """Run only the recurrent cells over a sequence [T, B, ...] from `carry0` -- exactly the burn-in of
+        `sequence` -- and return the carry after it (no outputs, no gradient). Feed-forward: returns carry0."""
+        if not self.recurrent:
+            return carry0
+        obs_seq = as_obs(obs_seq)
+        resets = jnp.asarray(resets, bool)
+        if cache is None:
+            cache = self.robot_cache(params, robots)
+        return self._advance(params, self._parts(robots, obs_seq, resets), carry0, resets, cache)
 
     # ------------------------------------------------------------------ distribution helpers
     def sample(self, key: jax.Array, mu: jax.Array, act_mask: jax.Array | None = None) -> jax.Array:

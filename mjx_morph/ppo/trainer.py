@@ -1,0 +1,340 @@
+"""Chunked recurrent PPO as one jitted function of a single train state (architecture.md §4-5).
+
+One iteration (`Trainer.iteration`, jitted; `rollout` and `update` are its two halves, jitted separately for
+per-phase timing):
+
+1. Rollout: `lax.scan` over control steps. Each step updates the observation normaliser with the batch,
+   normalises the proprioceptive part, runs `model.step` with the carried per-limb state (zeroed at episode
+   starts), samples from N(mu, 0.9), steps every env (automatic resets draw robots from the sampler), and scales
+   the reward. Env state, recurrent state, normalisers and the sampler carry across iterations, so episodes run
+   across rollout boundaries.
+2. Windows: the rollout of T steps per env is cut into T / W windows of W = 80 steps. Window k is trained as a
+   sequence of B = 20 burn-in steps followed by its W steps, from the recurrent state stored where its burn-in
+   starts. The scan records that state (one per window), so only K = T / W states per env are stored, not T.
+   The first window's burn-in is the last B steps of the previous rollout (kept in the train state as the "tail").
+   Done flags reset the state inside burn-in and window alike.
+   Feed-forward models use the same code with W = 1 and B = 0: windows are single transitions, shuffled
+   individually as in the original PPO.
+3. GAE (γ 0.99, λ 0.95, time-limit semantics) with V(s_T) from the live state; advantages normalised once over
+   the whole rollout.
+4. Epochs x minibatches (whole windows, a fresh permutation per epoch) as one `lax.scan`. Before each update the
+   approximate KL on the minibatch is computed with the current parameters (the same forward pass as the
+   gradient); if it exceeds the threshold that update is not applied and all remaining minibatches and epochs are
+   skipped (`lax.cond`, so skipped work is not computed).
+5. The robot sampler folds in the rollout's finished episodes once per iteration.
+
+Everything is device-side; the Python loop only logs, checkpoints and evaluates.
+"""
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import optax
+from flax import struct
+
+from ..nets.model import Model, Obs
+from ..sim import sampling
+from ..sim.env import Env
+from .gae import gae
+from .loss import LossInfo, ppo_loss
+from .schedule import learning_rate
+from .stats import RewardScaler, RunningMeanStd
+
+
+@dataclasses.dataclass(frozen=True)
+class PPOConfig:
+    num_envs: int = 1024
+    rollout_len: int = 80           # control steps per env per iteration (a multiple of the window)
+    window: int = 80                # training window of recurrent models (feed-forward: 1)
+    burn_in: int = 20               # burn-in prefix of each window (feed-forward: 0)
+    minibatch_size: int = 5120      # transitions per minibatch (= 64 windows of 80)
+    epochs: int = 8
+    gamma: float = 0.99
+    lam: float = 0.95
+    clip_eps: float = 0.2
+    value_coef: float = 0.5
+    entropy_coef: float = 0.0
+    lr: float = 3e-4
+    warmup_iters: int = 5
+    adam_eps: float = 1e-5
+    max_grad_norm: float = 0.5
+    kl_threshold: float = 0.05
+    total_steps: int = 100_000_000
+    sampling: str = "balanced"
+
+    @property
+    def steps_per_iter(self) -> int:
+        return self.num_envs * self.rollout_len
+
+    @property
+    def num_iters(self) -> int:
+        return max(1, self.total_steps // self.steps_per_iter)
+
+    def for_model(self, recurrent: bool) -> "PPOConfig":
+        """Feed-forward models train on single transitions (W = 1, B = 0), as the original PPO."""
+        return self if recurrent else dataclasses.replace(self, window=1, burn_in=0)
+
+    def check(self) -> None:
+        if self.rollout_len % self.window:
+            raise ValueError(f"ppo.rollout_len={self.rollout_len} must be a multiple of ppo.window={self.window}")
+        if self.minibatch_size % self.window:
+            raise ValueError(f"ppo.minibatch_size={self.minibatch_size} must be a multiple of ppo.window={self.window}")
+        if self.burn_in > self.rollout_len:
+            raise ValueError(f"ppo.burn_in={self.burn_in} exceeds ppo.rollout_len={self.rollout_len}")
+        windows = self.num_envs * self.rollout_len // self.window
+        if windows < self.minibatch_size // self.window:
+            raise ValueError(f"a rollout has {windows} windows, fewer than one minibatch "
+                             f"({self.minibatch_size // self.window} windows): lower ppo.minibatch_size")
+
+
+@struct.dataclass
+class TrainState:
+    params: Any
+    opt_state: Any
+    obs_rms: RunningMeanStd      # over the flattened 12 x 52 proprioceptive vector
+    rew: RewardScaler
+    env: Any                     # batched EnvState
+    carry: Any                   # per-env recurrent state before the current observation
+    first: jax.Array             # (N,) the current observation starts an episode
+    tail_obs: Obs                # last B normalised observations of the previous rollout, (B, N, ...)
+    tail_first: jax.Array        # (B, N)
+    tail_carry: Any              # recurrent state where the tail starts
+    sampler: sampling.SamplerState
+    key: jax.Array
+    iteration: jax.Array         # () int32, iterations done
+
+
+class Batch(NamedTuple):
+    """A rollout, time-major (T, N), plus what the windows need."""
+    obs: Obs                     # (B + T, N, ...) normalised: tail then rollout
+    first: jax.Array             # (B + T, N)
+    starts: Any                  # (K, N, ...) recurrent state at each window's burn-in start
+    action: jax.Array            # (T, N, 24)
+    logp: jax.Array              # (T, N)
+    value: jax.Array             # (T, N)
+    adv: jax.Array               # (T, N) normalised
+    ret: jax.Array               # (T, N)
+
+
+class Transition(NamedTuple):
+    obs: Obs
+    first: jax.Array
+    action: jax.Array
+    logp: jax.Array
+    value: jax.Array
+    reward: jax.Array            # scaled
+    raw_reward: jax.Array
+    done: jax.Array
+    truncated: jax.Array
+    ep_return: jax.Array
+    ep_length: jax.Array
+    ep_robot: jax.Array
+    unstable: jax.Array
+    fell: jax.Array
+
+
+#: XLA CPU options for small programs whose compile time dominates (tests, smoke runs): ~2x faster compiles
+FAST_COMPILE = {"xla_backend_optimization_level": 0, "xla_llvm_disable_expensive_passes": True}
+
+
+class Trainer:
+    def __init__(self, env: Env, model: Model, config: PPOConfig, fast_compile: bool = False):
+        config = config.for_model(model.recurrent)
+        config.check()
+        self.env, self.model, self.cfg = env, model, config
+        self.num_windows = config.rollout_len // config.window      # K per env
+        self.mb_windows = config.minibatch_size // config.window
+        self.num_minibatches = config.num_envs * self.num_windows // self.mb_windows
+        self.tx = optax.inject_hyperparams(
+            lambda learning_rate: optax.chain(optax.clip_by_global_norm(config.max_grad_norm),
+                                              optax.adam(learning_rate, eps=config.adam_eps)))(learning_rate=config.lr)
+        jit = (lambda f: jax.jit(f, compiler_options=FAST_COMPILE)) if fast_compile else jax.jit
+        self.iteration = jit(self._iteration)
+        self.rollout = jit(self._rollout)
+        self.update = jit(self._update)
+        self.evaluate_windows = jit(self._evaluate_windows)
+        self._init = jit(self._init_state)
+
+    # ------------------------------------------------------------------ state
+    def init(self, key: jax.Array) -> TrainState:
+        """The initial train state (jitted: environment resets and parameter init compile into one program)."""
+        return self._init(key)
+
+    def _init_state(self, key: jax.Array) -> TrainState:
+        cfg, env, model = self.cfg, self.env, self.model
+        k_env, k_model, k_next = jax.random.split(key, 3)
+        sampler = sampling.init(env.num_robots, cfg.sampling)
+        env_state = env.init(k_env, cfg.num_envs, sampler)
+        obs_rms = RunningMeanStd.create((env_state.obs.proprio[0].size,))
+        obs = self._normalize(obs_rms, env_state.obs)
+        params = model.init(k_model, env.robots, jax.tree.map(lambda x: x[:1], obs))
+        opt_state = self.tx.init(params)
+        carry = model.initial_carry(cfg.num_envs)
+        b = cfg.burn_in
+        return TrainState(
+            params=params, opt_state=opt_state, obs_rms=obs_rms, rew=RewardScaler.create(cfg.num_envs),
+            env=env_state, carry=carry, first=jnp.ones((cfg.num_envs,), bool),
+            tail_obs=jax.tree.map(lambda x: jnp.broadcast_to(x, (b, *x.shape)), obs),
+            tail_first=jnp.ones((b, cfg.num_envs), bool), tail_carry=carry, sampler=sampler, key=k_next,
+            iteration=jnp.int32(0))
+
+    @staticmethod
+    def _normalize(rms: RunningMeanStd, env_obs) -> Obs:
+        p = env_obs.proprio
+        flat = rms.normalize(p.reshape(p.shape[0], -1))
+        return Obs(flat.reshape(p.shape), env_obs.prev_action, env_obs.robot, env_obs.hfield)
+
+    # ------------------------------------------------------------------ rollout
+    def _act(self, params, cache, sampler, c, key):
+        env_state, carry, first, obs_rms, rew = c
+        model, robots = self.model, self.env.robots
+        obs_rms = obs_rms.update(env_state.obs.proprio.reshape(self.cfg.num_envs, -1))
+        obs = self._normalize(obs_rms, env_state.obs)
+        mu, value, carry = model.step(params, robots, obs, carry, first, cache=cache)
+        act_mask = robots.act_mask[obs.robot]
+        action = model.sample(key, mu, act_mask)
+        logp = model.log_prob(mu, action, act_mask)
+        nxt = self.env.vstep(env_state, action, sampler)
+        rew, scaled = rew(nxt.reward, nxt.done, self.cfg.gamma)
+        ep = nxt.episode
+        tr = Transition(obs, first, action, logp, value, scaled, nxt.reward, nxt.done, nxt.truncated,
+                        ep.ret, ep.length, ep.robot, ep.unstable, ep.fell)
+        return (nxt, carry, nxt.done, obs_rms, rew), tr
+
+    def _rollout(self, ts: TrainState):
+        cfg = self.cfg
+        cache = self.model.robot_cache(ts.params, self.env.robots)
+        key, k_roll = jax.random.split(ts.key)
+        b, w = cfg.burn_in, cfg.window
+        # The acting state at the rollout start is re-derived by the same burn-in over the tail that training will
+        # run, with the current parameters: acting and training then see identical states (ratio exactly 1).
+        carry = self.model.advance(ts.params, self.env.robots, ts.tail_obs, ts.tail_carry, ts.tail_first,
+                                   cache=cache) if b else ts.carry
+        c0 = (ts.env, carry, ts.first, ts.obs_rms, ts.rew)
+        keys = jax.random.split(k_roll, cfg.rollout_len).reshape(self.num_windows, cfg.window, -1)
+        save_at = w - b if b else w          # the next window's burn-in starts after w - b steps of this one
+
+        def act(c, x):                       # one body for every step, so the env step is compiled once
+            i, k = x
+            c, saved = c
+            saved = jax.tree.map(lambda s, cur: jnp.where(i == save_at, cur, s), saved, c[1])
+            c, tr = self._act(ts.params, cache, ts.sampler, c, k)
+            return (c, saved), tr
+
+        def window(c, ks):
+            (c, saved), tr = jax.lax.scan(act, (c, c[1]), (jnp.arange(w), ks))
+            return c, (tr, saved if b else c[1])
+
+        c, (tr, burn_starts) = jax.lax.scan(window, c0, keys)
+        tr = jax.tree.map(lambda x: x.reshape(cfg.rollout_len, *x.shape[2:]), tr)   # (T, N, ...)
+        env_state, carry, first, obs_rms, rew = c
+        # V(s_T) with the live state (the state itself is not advanced: the next rollout redoes this step)
+        last_obs = self._normalize(obs_rms, env_state.obs)
+        _, last_value, _ = self.model.step(ts.params, self.env.robots, last_obs, carry, first, cache=cache)
+        adv, ret = gae(tr.value, tr.reward, tr.done, tr.truncated, last_value, cfg.gamma, cfg.lam)
+        adv = (adv - adv.mean()) / (adv.std(ddof=1) + 1e-5)
+        starts = jax.tree.map(lambda t, s: jnp.concatenate([t[None], s[:-1]]), ts.tail_carry, burn_starts)
+        batch = Batch(obs=jax.tree.map(lambda t, o: jnp.concatenate([t, o]), ts.tail_obs, tr.obs),
+                      first=jnp.concatenate([ts.tail_first, tr.first]), starts=starts, action=tr.action,
+                      logp=tr.logp, value=tr.value, adv=adv, ret=ret)
+        t_total = cfg.rollout_len
+        ts = ts.replace(
+            env=env_state, carry=carry, first=first, obs_rms=obs_rms, rew=rew, key=key,
+            tail_obs=jax.tree.map(lambda o: o[t_total - b:], tr.obs), tail_first=tr.first[t_total - b:],
+            tail_carry=jax.tree.map(lambda s: s[-1], burn_starts),
+            sampler=sampling.update(ts.sampler, tr.ep_length, tr.ep_robot, tr.done))
+        return ts, batch, self._rollout_metrics(tr)
+
+    @staticmethod
+    def _rollout_metrics(tr: Transition) -> dict:
+        done = tr.done.astype(jnp.float32)
+        n = done.sum()
+        mean = lambda x: jnp.where(n > 0, (x * done).sum() / jnp.maximum(n, 1), jnp.nan)
+        return {"episode_return": mean(tr.ep_return), "episode_length": mean(tr.ep_length.astype(jnp.float32)),
+                "episodes": n, "fall_fraction": mean(tr.fell.astype(jnp.float32)),
+                "instabilities": (tr.unstable & tr.done).sum().astype(jnp.float32),
+                "reward_mean": tr.raw_reward.mean(), "value_mean": tr.value.mean()}
+
+    # ------------------------------------------------------------------ update
+    def _minibatch(self, batch: Batch, ids: jax.Array):
+        """Windows `ids` (flat index k * N + n) -> time-major sequences of B + W steps and their targets."""
+        cfg = self.cfg
+        n_env = cfg.num_envs
+        k, n = ids // n_env, ids % n_env
+        b, w = cfg.burn_in, cfg.window
+        t_seq = (k * w)[None, :] + jnp.arange(b + w)[:, None]                  # (B + W, M) in tail+rollout time
+        t_win = t_seq[b:] - b                                                   # (W, M) in rollout time
+        obs = jax.tree.map(lambda x: x[t_seq, n[None, :]], batch.obs)
+        first = batch.first[t_seq, n[None, :]]
+        carry0 = jax.tree.map(lambda s: s[k, n], batch.starts)
+        pick = lambda x: x[t_win, n[None, :]]
+        return obs, first, carry0, pick(batch.action), pick(batch.logp), pick(batch.value), pick(batch.adv), \
+            pick(batch.ret)
+
+    def _loss(self, params, batch: Batch, ids):
+        obs, first, carry0, action, logp_old, value_old, adv, ret = self._minibatch(batch, ids)
+        model, robots = self.model, self.env.robots
+        mu, value, _ = model.sequence(params, robots, obs, carry0, first, burn_in=self.cfg.burn_in)
+        act_mask = robots.act_mask[obs.robot[self.cfg.burn_in:]]
+        logp = model.log_prob(mu, action, act_mask)
+        info = ppo_loss(logp, logp_old, adv, value, value_old, ret, model.entropy(mu, act_mask),
+                        clip_eps=self.cfg.clip_eps, value_coef=self.cfg.value_coef,
+                        entropy_coef=self.cfg.entropy_coef)
+        return info.loss, info
+
+    def _evaluate_windows(self, params, batch: Batch):
+        """(logp, value) recomputed for every window of `batch`, and the stored (logp_old, value_old), all
+        (W, num_windows). With the rollout's parameters they must agree: the test of the recurrent bookkeeping."""
+        ids = jnp.arange(self.cfg.num_envs * self.num_windows)
+        obs, first, carry0, action, logp_old, value_old, _, _ = self._minibatch(batch, ids)
+        mu, value, _ = self.model.sequence(params, self.env.robots, obs, carry0, first, burn_in=self.cfg.burn_in)
+        logp = self.model.log_prob(mu, action, self.env.robots.act_mask[obs.robot[self.cfg.burn_in:]])
+        return logp, value, logp_old, value_old
+
+    def _update(self, ts: TrainState, batch: Batch):
+        cfg = self.cfg
+        lr = learning_rate(ts.iteration, cfg.num_iters, cfg.lr, cfg.warmup_iters)
+        opt_state = ts.opt_state._replace(hyperparams={**ts.opt_state.hyperparams, "learning_rate": lr})
+        key, k_perm = jax.random.split(ts.key)
+        n_windows = cfg.num_envs * self.num_windows
+        perms = jax.vmap(lambda k: jax.random.permutation(k, n_windows))(jax.random.split(k_perm, cfg.epochs))
+        ids = perms[:, : self.num_minibatches * self.mb_windows].reshape(-1, self.mb_windows)
+        grad_fn = jax.value_and_grad(self._loss, has_aux=True)
+        zero_info = LossInfo(*([jnp.float32(0.0)] * len(LossInfo._fields)))
+
+        def mb_step(c, mb_ids):
+            params, opt, stopped, acc, applied, first_info = c
+
+            def run(_):
+                (_, info), grads = grad_fn(params, batch, mb_ids)
+                ok = info.approx_kl <= cfg.kl_threshold
+                updates, new_opt = self.tx.update(grads, opt, params)
+                new_params = optax.apply_updates(params, updates)
+                keep = lambda a, b: jax.tree.map(lambda x, y: jnp.where(ok, x, y), a, b)
+                return keep(new_params, params), keep(new_opt, opt), ~ok, info, ok
+
+            def skip(_):
+                return params, opt, jnp.asarray(True), zero_info, jnp.asarray(False)
+
+            params, opt, stop_now, info, ok = jax.lax.cond(stopped, skip, run, None)
+            acc = jax.tree.map(lambda a, x: a + jnp.where(ok, x, 0.0), acc, info)
+            first_info = jax.tree.map(lambda f, x: jnp.where(applied == 0, x, f), first_info, info)
+            return (params, opt, stopped | stop_now, acc, applied + ok.astype(jnp.int32), first_info), None
+
+        c0 = (ts.params, opt_state, jnp.asarray(False), zero_info, jnp.int32(0), zero_info)
+        (params, opt_state, _, acc, applied, first_info), _ = jax.lax.scan(mb_step, c0, ids)
+        n = jnp.maximum(applied, 1).astype(jnp.float32)
+        metrics = {f"{k}": v / n for k, v in acc._asdict().items()}
+        metrics.update(lr=lr, minibatches=applied.astype(jnp.float32),
+                       epochs_run=applied.astype(jnp.float32) / self.num_minibatches,
+                       first_ratio=first_info.ratio_mean, first_kl=first_info.approx_kl)
+        ts = ts.replace(params=params, opt_state=opt_state, key=key, iteration=ts.iteration + 1)
+        return ts, metrics
+
+    def _iteration(self, ts: TrainState):
+        ts, batch, m1 = self._rollout(ts)
+        ts, m2 = self._update(ts, batch)
+        return ts, {**m1, **m2}

@@ -1,0 +1,85 @@
+"""A cheap stand-in for the MJX env with the same interface (for testing the PPO bookkeeping quickly).
+
+Observations drift at random, episodes end by a "fall" (random) or a time limit that depends on the robot, the
+reward depends on the action; robots differ in their limb and actuator masks."""
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from mjx_morph.nets.model import Robots
+from mjx_morph.sim import sampling
+
+
+class Obs(NamedTuple):
+    proprio: jax.Array
+    prev_action: jax.Array
+    hfield: jax.Array
+    robot: jax.Array
+
+
+class Episode(NamedTuple):
+    ret: jax.Array
+    length: jax.Array
+    robot: jax.Array
+    fell: jax.Array
+    timeout: jax.Array
+    unstable: jax.Array
+
+
+class State(NamedTuple):
+    x: jax.Array
+    t: jax.Array
+    robot: jax.Array
+    key: jax.Array
+    obs: Obs
+    reward: jax.Array
+    done: jax.Array
+    truncated: jax.Array
+    ep_return: jax.Array
+    episode: Episode
+
+
+class ToyEnv:
+    def __init__(self, num_robots: int = 3, limits=(5, 9, 13), fall_prob: float = 0.05):
+        self.num_robots = num_robots
+        self.limits = jnp.asarray(limits[:num_robots], jnp.int32)
+        self.fall_prob = fall_prob
+        nodes = jnp.arange(12)[None, :] < (4 + 2 * jnp.arange(num_robots))[:, None]
+        act = jnp.repeat(nodes, 2, axis=1).at[:, :2].set(False).at[:, 3::4].set(False)
+        ctx = jax.random.normal(jax.random.PRNGKey(7), (num_robots, 12, 35)) * nodes[..., None]
+        self.robots = Robots(ctx, nodes, act)
+        self.vstep = jax.vmap(self.step, in_axes=(0, 0, None))
+
+    def reset(self, key, robot):
+        k1, k2 = jax.random.split(key)
+        x = jax.random.normal(k1, (12, 52)) * self.robots.node_mask[robot][:, None]
+        obs = Obs(x, jnp.zeros(24), jnp.zeros((0,)), robot)
+        z = jnp.float32(0)
+        ep = Episode(z, jnp.int32(0), robot, False, False, False)
+        return State(x, jnp.int32(0), robot, k2, obs, z, jnp.asarray(False), jnp.asarray(False), z, ep)
+
+    def step(self, s: State, action, sampler):
+        k1, k2, k3, k4 = jax.random.split(s.key, 4)
+        mask = self.robots.act_mask[s.robot]
+        a = jnp.where(mask, jnp.clip(action, -1, 1), 0.0)
+        x = (0.9 * s.x + 0.3 * jax.random.normal(k1, s.x.shape) + 0.1 * a.reshape(12, 2).sum(-1, keepdims=True))
+        x = x * self.robots.node_mask[s.robot][:, None]
+        r = a.sum() * 0.1 + x[0, 0]
+        t = s.t + 1
+        fell = jax.random.uniform(k2) < self.fall_prob
+        timeout = (t >= self.limits[s.robot]) & ~fell
+        done = fell | timeout
+        ep_ret = s.ep_return + r
+        ep = Episode(ep_ret, t, s.robot, fell, timeout, jnp.asarray(False))
+        cont = State(x, t, s.robot, k3, Obs(x, a, jnp.zeros((0,)), s.robot), r, done, timeout, ep_ret, ep)
+        fresh = self.reset(k4, sampling.sample(k3, sampler, self.num_robots))
+        fresh = fresh._replace(reward=r, done=done, truncated=timeout, episode=ep)
+        return jax.tree.map(lambda f, c: jnp.where(done, f, c), fresh, cont)
+
+    def init(self, key, num_envs, sampler=None):
+        kr, ke = jax.random.split(key)
+        robots = jax.vmap(lambda k: sampling.sample(k, sampler, self.num_robots))(jax.random.split(kr, num_envs))
+        return jax.vmap(self.reset)(jax.random.split(ke, num_envs), robots)
