@@ -1,0 +1,104 @@
+"""Work around a deadlock of jaxlib 0.10's CPU LAPACK kernels under MJX: pure-JAX Cholesky for MJX on CPU.
+
+jaxlib 0.10.x runs batched LAPACK calls (`potrf` for `cho_factor`, ...) through `jax::ParallelBatchMap`, which
+schedules batch chunks onto XLA:CPU's intra-op thread pool and blocks waiting for them. When the thunk executor
+has several such calls in flight they occupy every pool thread and wait for work nobody can run: the process
+hangs at 0% CPU (seen here with MJX's Newton solver vmapped over 60 robots on the 2-core CI machine; gdb shows
+all pool threads in `BlockingCounter::Wait` under `CholeskyFactorization`). jaxlib 0.11 compiles that parallel
+path out of open-source builds, and GPUs never take it.
+
+`install()` gives MJX's modules that factor or solve with Cholesky (smooth, solver, forward) a view of `jax` in
+which `jax.scipy.linalg.cho_factor` / `cho_solve` are plain JAX loops (`lax.fori_loop` over the columns; exact
+to float rounding, O(n^3) like LAPACK, fine for the nv <= ~60 of padded UNIMALs). Only those three MJX modules
+see it, only when the default backend is CPU and jaxlib is older than 0.11; everything else is untouched.
+"""
+from __future__ import annotations
+
+import types
+
+import jax
+import jax.numpy as jnp
+
+_INSTALLED = False
+
+
+def cholesky_upper(a: jax.Array) -> jax.Array:
+    """U with a = U^T U (upper triangle, zeros below), for a symmetric positive definite `a` (..., n, n)."""
+    n = a.shape[-1]
+    idx = jnp.arange(n)
+
+    def col(j, L):       # build lower L column by column, return its transpose
+        row = L[..., j, :] * (idx < j)                                    # L[j, :j]
+        d = jnp.sqrt(jnp.maximum(a[..., j, j] - jnp.sum(row * row, axis=-1), 1e-30))
+        s = a[..., :, j] - jnp.einsum("...ik,...k->...i", L * (idx < j), row)
+        c = jnp.where(idx > j, s / d[..., None], 0.0) + jnp.where(idx == j, d[..., None], 0.0)
+        return L.at[..., :, j].set(c)
+
+    L = jax.lax.fori_loop(0, n, col, jnp.zeros_like(a))
+    return jnp.swapaxes(L, -1, -2)
+
+
+def _solve_upper(u: jax.Array, b: jax.Array, transpose: bool) -> jax.Array:
+    """Solve U x = b (transpose=False, back substitution) or U^T x = b (forward substitution)."""
+    n = u.shape[-1]
+    idx = jnp.arange(n)
+    vec = b.ndim == u.ndim - 1
+    x = b[..., None] if vec else b
+
+    def step(k, x):
+        i = k if transpose else n - 1 - k
+        if transpose:
+            coeff = u[..., :, i] * (idx < i)                 # U^T[i, :i] = U[:i, i]
+        else:
+            coeff = u[..., i, :] * (idx > i)
+        v = (x[..., i, :] - jnp.einsum("...k,...kj->...j", coeff, x)) / u[..., i, i][..., None]
+        return x.at[..., i, :].set(v)
+
+    x = jax.lax.fori_loop(0, n, step, x)
+    return x[..., 0] if vec else x
+
+
+def cho_factor(a, lower=False, overwrite_a=False, check_finite=True):
+    u = cholesky_upper(jnp.asarray(a))
+    return (jnp.swapaxes(u, -1, -2) if lower else u), lower
+
+
+def cho_solve(c_and_lower, b, overwrite_b=False, check_finite=True):
+    c, lower = c_and_lower
+    u = jnp.swapaxes(c, -1, -2) if lower else c
+    return _solve_upper(u, _solve_upper(u, jnp.asarray(b), transpose=True), transpose=False)
+
+
+class _Namespace(types.SimpleNamespace):
+    def __init__(self, base, **overrides):
+        super().__init__(**overrides)
+        self._base = base
+
+    def __getattr__(self, name):
+        return getattr(self._base, name)
+
+
+def _needed() -> bool:
+    try:
+        major, minor = (int(x) for x in jax.__version__.split(".")[:2])
+    except ValueError:
+        return False
+    return jax.default_backend() == "cpu" and (major, minor) < (0, 11)
+
+
+def install(force: bool = False) -> bool:
+    """Give MJX's Cholesky users the pure-JAX versions (CPU + jaxlib < 0.11 only, unless `force`).
+    Idempotent; returns whether the workaround is active."""
+    global _INSTALLED
+    if _INSTALLED:
+        return True
+    if not (force or _needed()):
+        return False
+    from mujoco.mjx._src import forward, smooth, solver
+    linalg = _Namespace(jax.scipy.linalg, cho_factor=cho_factor, cho_solve=cho_solve)
+    scipy = _Namespace(jax.scipy, linalg=linalg)
+    view = _Namespace(jax, scipy=scipy)
+    for mod in (forward, smooth, solver):
+        mod.jax = view
+    _INSTALLED = True
+    return True

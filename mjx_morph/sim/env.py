@@ -1,0 +1,285 @@
+"""The batched UNIMAL environment: pure `reset` / `step` functions over one stacked MJX model.
+
+    env = make_env("unimal100/train", "ft")                  # or a RobotSet, a list of Morphology, a path
+    sampler = sampling.init(env.num_robots, "balanced")
+    state = env.init(key, num_envs, sampler)                  # batched reset, robots drawn from the sampler
+    state = env.vstep(state, action, sampler)                 # = jax.vmap(env.step, (0, 0, None))
+    # inside the PPO: lax.scan over env.vstep; sampler = sampling.update(sampler, ...) once per iteration
+
+Single-env functions (vmap them, or use `vreset`/`vstep`):
+    reset(key, robot) -> EnvState         the robot's start pose + U(-0.005, 0.005) noise on every real qpos and
+                                          qvel entry (quaternion not re-normalised, as MetaMorph), a new terrain
+    step(state, action, sampler=None) -> EnvState
+        1. the action (24,) is masked, clamped to [-1, 1] (MuJoCo's ctrlrange) and scattered to the actuators;
+        2. for csr/obstacle the height-field patch is re-centred under the torso;
+        3. 4 MJX physics substeps (control dt 0.02 s);
+        4. reward, fall / side-limit termination, the 1000-step time limit, and the instability check: a NaN or
+           inf anywhere in qpos/qvel or the body kinematics, |qvel| > max_qvel, or the torso farther than 1e4 m
+           ends the episode with unstable = True (counted in the episode stats, not as a fall, reward 0,
+           `truncated` = True so that PPO does not treat it as a true terminal); nothing of that state reaches the
+           observation;
+        5. on any episode end the env resets itself at once into a robot drawn from `sampler.probs` (uniform
+           without a sampler) with a new terrain; the returned observation is the new episode's first one, as in
+           MetaMorph's vectorised envs.
+The returned state's `reward`, `done`, `truncated` and `episode` describe the transition just taken; `episode`
+is meaningful where `done` (return, length, robot, fell, out_of_bounds, timeout, unstable).
+
+Options (EnvConfig), each a documented deviation where it differs from MetaMorph: solver iterations (5, MuJoCo's
+default 100) and line-search iterations (8, default 50) -- 5 is the fewest with which every original train and test
+robot stays within 1e-3 m of MuJoCo C over 0.5 s (`experiments.check_sim`; at 4, 3 of the 100 train robots drift
+1.5-2.1e-3 m after a contact event, docs/benchmarks.md); self-collision (off; MetaMorph has it on); physics in
+float32 (JAX's default; MetaMorph float64). Contacts otherwise as MetaMorph: condim 3, friction 0.7, pyramidal
+cone, Newton solver, Euler integrator, parent-child filtering, no exclude pairs.
+"""
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, NamedTuple, Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from mujoco import mjx
+
+from ..unimal.morphology import MAX_NODES, Morphology
+from . import contact, cpu_linalg, observation, reward, sampling, terrain
+from .model import Robots, StackedModel, Tables, build_stacked_model
+from .padding import SolverOptions, WorldSpec
+from .tasks import EPISODE_LENGTH, FRAME_SKIP, RESET_NOISE, Task, get_task
+
+
+@dataclasses.dataclass(frozen=True)
+class EnvConfig:
+    task: str = "ft"
+    iterations: int = 5             # solver iterations (MuJoCo default 100)
+    ls_iterations: int = 8          # line-search iterations (MuJoCo default 50)
+    self_collision: bool = False    # MetaMorph: on
+    episode_length: int = EPISODE_LENGTH
+    substeps: int = FRAME_SKIP
+    reset_noise: float = RESET_NOISE
+    max_qvel: float = 1.0e3         # instability threshold on any |qvel| entry
+    unroll_substeps: bool = False   # Python-unroll the substeps instead of a fori_loop
+    c_contact_frames: bool = True   # plane-capsule contact frames as MuJoCo C (contact.py)
+
+    @classmethod
+    def from_cfg(cls, cfg: Any) -> "EnvConfig":
+        """From a Hydra `env` node (name + optional sim keys)."""
+        get = (lambda k, d: cfg.get(k, d)) if hasattr(cfg, "get") else (lambda k, d: getattr(cfg, k, d))
+        return cls(task=get("name", "ft"), iterations=int(get("solver_iterations", 5)),
+                   ls_iterations=int(get("ls_iterations", 8)), self_collision=bool(get("self_collision", False)),
+                   episode_length=int(get("episode_length", EPISODE_LENGTH)))
+
+
+class Obs(NamedTuple):
+    proprio: jax.Array      # (12, 52) float32 raw (padded tokens 0)
+    prev_action: jax.Array  # (24,) float32 the executed (masked, clamped) previous action; 0 at episode start
+    hfield: jax.Array       # (1410,) float32 for csr/obstacle, (0,) otherwise
+    robot: jax.Array        # () int32 index into the per-robot arrays
+
+
+class Episode(NamedTuple):
+    """Statistics of the episode that ended at this step (meaningful where `EnvState.done`)."""
+    ret: jax.Array
+    length: jax.Array
+    robot: jax.Array
+    fell: jax.Array
+    out_of_bounds: jax.Array
+    timeout: jax.Array
+    unstable: jax.Array
+
+
+class EnvState(NamedTuple):
+    qpos: jax.Array
+    qvel: jax.Array
+    qacc_warmstart: jax.Array
+    robot: jax.Array            # () int32
+    t: jax.Array                # () int32 control steps taken in this episode
+    key: jax.Array
+    torso_x: jax.Array          # torso x as last observed (reward baseline)
+    terrain: Any                # terrain.NoTerrain / Corridor / Obstacles
+    obs: Obs
+    reward: jax.Array           # raw reward of the last transition
+    done: jax.Array             # the last transition ended an episode (and the env was reset)
+    truncated: jax.Array        # ... by the time limit or instability (not a true terminal)
+    ep_return: jax.Array        # running return of the current episode
+    episode: Episode
+
+
+def _zeros_episode() -> Episode:
+    z = jnp.float32(0.0)
+    f = jnp.asarray(False)
+    return Episode(ret=z, length=jnp.int32(0), robot=jnp.int32(0), fell=f, out_of_bounds=f, timeout=f, unstable=f)
+
+
+class Env:
+    """Holds the stacked model and the static configuration; all methods are pure and jit-able."""
+
+    def __init__(self, robots: Sequence[Morphology], config: EnvConfig = EnvConfig()):
+        self.config = config
+        self.task: Task = get_task(config.task)
+        contact.install(config.c_contact_frames)
+        cpu_linalg.install()
+        self.morphologies = tuple(robots)
+        opts = SolverOptions(iterations=config.iterations, ls_iterations=config.ls_iterations,
+                             self_collision=config.self_collision)
+        self.patch = terrain.patch_size(self.morphologies) if self.task.uses_hfield else 0
+        self.sm: StackedModel = build_stacked_model(self.morphologies, self._world(), opts)
+        self.robots: Robots = self.sm.policy
+        self.tables: Tables = self.sm.tables
+        self.num_robots = len(self.morphologies)
+        mm = self.sm.mj_models[0]
+        self._hgeom = int(np.nonzero(mm.geom_type == 1)[0][0]) if self.task.uses_hfield else -1  # mjGEOM_HFIELD
+        self._template = jax.device_put(mjx.make_data(self.sm.model_for(0), impl="jax"))
+        self.hfield_size = terrain.HFIELD_OBS_SIZE if self.task.hfield_obs else 0
+
+    def _world(self) -> WorldSpec:
+        t = self.task
+        if t.terrain == "plane":
+            return WorldSpec(geoms='    <geom name="floor" type="plane" size="0 0 1" pos="0 0 1" '
+                                   'contype="0" conaffinity="1"/>')
+        if t.terrain == "incline":
+            a = np.radians(t.incline_deg)
+            # the slab's top face: z = 1/cos(a) + tan(a) x
+            return WorldSpec(geoms=f'    <geom name="floor" type="plane" size="0 0 1" pos="0 0 {float(1 / np.cos(a))!r}" '
+                                   f'euler="0 {-float(t.incline_deg)!r} 0" contype="0" conaffinity="1"/>',
+                             incline_deg=t.incline_deg)
+        asset, geom = terrain.hfield_world_xml(self.patch)
+        return WorldSpec(assets=asset, geoms=geom)
+
+    # ---- helpers ---------------------------------------------------------------------------------------------
+    def _row(self, tree, robot):
+        return jax.tree_util.tree_map(lambda x: x[robot], tree)
+
+    def _model(self, robot, terrain_state, qpos):
+        m = self.sm.model_for(robot)
+        if self.task.uses_hfield:
+            data, pos = terrain.patch(self.task.terrain, terrain_state, qpos[0], qpos[1], self.patch)
+            m = m.replace(hfield_data=data, geom_pos=m.geom_pos.at[self._hgeom].set(pos))
+        return m
+
+    def _obs(self, d, qpos, qvel, tab, pol, robot, terrain_state, prev_action, yaw_aligned: bool) -> Obs:
+        prop = observation.proprio(d.xpos, d.xquat, d.cvel, d.subtree_com, qpos, qvel, tab, pol.node_mask,
+                                   pol.act_mask)
+        if self.task.hfield_obs:
+            if yaw_aligned:
+                yaw = jnp.float32(0.0)
+            else:
+                xdir = d.xmat[1, :2, 0]
+                yaw = jnp.arctan2(xdir[1], xdir[0])
+            hf = terrain.hfield_obs(self.task.terrain, terrain_state, d.xpos[1, 0], d.xpos[1, 1], yaw)
+        else:
+            hf = jnp.zeros((0,), jnp.float32)
+        return Obs(proprio=prop.astype(jnp.float32), prev_action=prev_action, hfield=hf,
+                   robot=jnp.asarray(robot, jnp.int32))
+
+    # ---- API ---------------------------------------------------------------------------------------------------
+    def reset(self, key: jax.Array, robot: jax.Array) -> EnvState:
+        robot = jnp.asarray(robot, jnp.int32)
+        kq, kv, kt, knext = jax.random.split(key, 4)
+        tab, pol = self._row(self.tables, robot), self._row(self.robots, robot)
+        m = self.sm.model_for(robot)
+        s = self.config.reset_noise
+        qpos = m.qpos0 + jax.random.uniform(kq, m.qpos0.shape, minval=-s, maxval=s) * tab.real_qpos
+        qvel = jax.random.uniform(kv, (m.nv,), minval=-s, maxval=s) * tab.real_dof
+        ts = terrain.generate(self.task.terrain, kt)
+        obs, torso_x = self._observe(robot, qpos, qvel, ts, jnp.zeros((2 * MAX_NODES,), jnp.float32))
+        return EnvState(qpos=qpos, qvel=qvel, qacc_warmstart=jnp.zeros_like(qvel), robot=robot, t=jnp.int32(0),
+                        key=knext, torso_x=torso_x, terrain=ts, obs=obs, reward=jnp.float32(0.0),
+                        done=jnp.asarray(False), truncated=jnp.asarray(False), ep_return=jnp.float32(0.0),
+                        episode=_zeros_episode())
+
+    def _observe(self, robot, qpos, qvel, ts, prev_action):
+        tab, pol = self._row(self.tables, robot), self._row(self.robots, robot)
+        m = self.sm.model_for(robot)
+        d = self._template.replace(qpos=qpos, qvel=qvel)
+        d = mjx.kinematics(m, d)
+        d = mjx.com_pos(m, d)
+        d = mjx.com_vel(m, d)
+        return self._obs(d, qpos, qvel, tab, pol, robot, ts, prev_action, yaw_aligned=True), d.xpos[1, 0]
+
+    def observe(self, robot: jax.Array, qpos: jax.Array, qvel: jax.Array, terrain_state=None,
+                prev_action: jax.Array | None = None) -> Obs:
+        """The observation of an arbitrary state of robot `robot` (padded qpos/qvel layout), with kinematics
+        computed from that state and an axis-aligned height map, as right after a reset."""
+        robot = jnp.asarray(robot, jnp.int32)
+        ts = terrain.NoTerrain() if terrain_state is None else terrain_state
+        pa = jnp.zeros((2 * MAX_NODES,), jnp.float32) if prev_action is None else prev_action
+        return self._observe(robot, jnp.asarray(qpos, jnp.float32), jnp.asarray(qvel, jnp.float32), ts, pa)[0]
+
+    def step(self, state: EnvState, action: jax.Array, sampler: sampling.SamplerState | None = None) -> EnvState:
+        robot = state.robot
+        tab, pol = self._row(self.tables, robot), self._row(self.robots, robot)
+        m = self._model(robot, state.terrain, state.qpos)
+        raw = jnp.asarray(action, jnp.float32).reshape(2 * MAX_NODES)
+        act = jnp.where(pol.act_mask, jnp.clip(raw, -1.0, 1.0), 0.0)
+        ctrl = jnp.concatenate([act, jnp.zeros((1,), jnp.float32)])[tab.ctrl_src]
+        d = self._template.replace(qpos=state.qpos, qvel=state.qvel, qacc_warmstart=state.qacc_warmstart,
+                                   ctrl=ctrl)
+        if self.config.unroll_substeps:
+            for _ in range(self.config.substeps):
+                d = mjx.step(m, d)
+        else:
+            d = jax.lax.fori_loop(0, self.config.substeps, lambda i, dd: mjx.step(m, dd), d)
+
+        finite = lambda x: jnp.all(jnp.isfinite(x))
+        ok = (finite(d.qpos) & finite(d.qvel) & finite(d.xpos) & finite(d.xquat) & finite(d.cvel)
+              & finite(d.subtree_com) & (jnp.max(jnp.abs(d.qvel)) <= self.config.max_qvel)
+              & (jnp.max(jnp.abs(d.qpos[:3])) <= 1.0e4))
+        out = reward.evaluate(self.task, state.terrain, state.torso_x, d.xpos[1], tab.orig_height, raw,
+                              pol.act_mask)
+        t = state.t + 1
+        rew = jnp.where(ok, out.reward, 0.0)
+        fell = out.fell & ok
+        oob = out.out_of_bounds & ok
+        terminated = fell | oob
+        timeout = (t >= self.config.episode_length) & ok & ~terminated
+        unstable = ~ok
+        done = terminated | timeout | unstable
+        truncated = timeout | unstable
+        ep_return = state.ep_return + rew
+        episode = Episode(ret=ep_return, length=t, robot=robot, fell=fell, out_of_bounds=oob, timeout=timeout,
+                          unstable=unstable)
+        # the continuing state (sanitised: an unstable state is replaced by the reset below anyway)
+        clean = lambda x: jnp.where(ok, x, 0.0)
+        qpos, qvel = clean(d.qpos), clean(d.qvel)
+        dd = d.replace(xpos=clean(d.xpos), xquat=clean(d.xquat), cvel=clean(d.cvel),
+                       subtree_com=clean(d.subtree_com), xmat=clean(d.xmat))
+        obs = self._obs(dd, qpos, qvel, tab, pol, robot, state.terrain, act, yaw_aligned=False)
+        key, k_robot, k_reset = jax.random.split(state.key, 3)
+        cont = EnvState(qpos=qpos, qvel=qvel, qacc_warmstart=clean(d.qacc_warmstart), robot=robot, t=t, key=key,
+                        torso_x=dd.xpos[1, 0], terrain=state.terrain, obs=obs, reward=rew, done=done,
+                        truncated=truncated, ep_return=ep_return, episode=episode)
+        # automatic reset into a newly sampled robot
+        new_robot = sampling.sample(k_robot, sampler, self.num_robots)
+        fresh = self.reset(k_reset, new_robot)
+        fresh = fresh._replace(reward=rew, done=done, truncated=truncated, episode=episode)
+        return jax.tree_util.tree_map(lambda a, b: jnp.where(done, a, b), fresh, cont)
+
+    def vreset(self, keys: jax.Array, robots: jax.Array) -> EnvState:
+        """Batched `reset` (keys (N, 2), robots (N,))."""
+        return jax.vmap(self.reset)(keys, robots)
+
+    def vstep(self, state: EnvState, action: jax.Array, sampler: sampling.SamplerState | None = None) -> EnvState:
+        """Batched `step` over the leading env axis of `state` and `action` (N, 24); one sampler for all."""
+        return jax.vmap(self.step, in_axes=(0, 0, None))(state, action, sampler)
+
+    def init(self, key: jax.Array, num_envs: int, sampler: sampling.SamplerState | None = None) -> EnvState:
+        """`num_envs` fresh envs, robots drawn from the sampler (uniform without one)."""
+        kr, ke = jax.random.split(key)
+        robots = jax.vmap(lambda k: sampling.sample(k, sampler, self.num_robots))(jax.random.split(kr, num_envs))
+        return self.vreset(jax.random.split(ke, num_envs), robots)
+
+
+def make_env(robots: Any, task: str | Task | None = None, config: EnvConfig | None = None, **overrides) -> Env:
+    """An Env for a robot set name ("unimal100/train", "gen/train", a path), a RobotSet, or a list of robots.
+    `task` overrides `config.task` (default "ft"); other keyword arguments override EnvConfig fields."""
+    from ..unimal.sets import RobotSet, load_set
+    if isinstance(robots, str):
+        robots = load_set(robots).robots
+    elif isinstance(robots, RobotSet):
+        robots = robots.robots
+    config = config or EnvConfig()
+    if task is not None:
+        overrides["task"] = task.name if isinstance(task, Task) else task
+    config = dataclasses.replace(config, **overrides)
+    return Env(tuple(robots), config)

@@ -1,0 +1,298 @@
+"""One stacked `mjx.Model` for a robot set: every robot padded onto the set's shared tree, compiled, stacked.
+
+`build_stacked_model(robots, world, options)`:
+1. builds the shared tree of the set (`supertree.py`; a test set gets its own tree),
+2. writes each robot padded onto it inside the task's world (`padding.py`) and compiles it with MuJoCo,
+3. fixes up the compiled models so that they share one static MJX structure (DESIGN.md): `body_sameframe`,
+   `geom_sameframe`, `body_simple` and `dof_simplenum` are set to 0 (MJX's JAX path does not read them; the general
+   path is right for every robot), and every robot gets the element-wise max of `geom_rbound_hfield` (the height
+   field collision window, static in MJX); the solver tolerance is rescaled per robot so that the locked joints'
+   armature does not loosen it (`compile_padded`);
+4. stacks the MJX models along a leading robot axis. A leaf that is identical for all robots is kept once
+   (`axes` leaf None), the others get the robot axis (`axes` leaf 0); `model_for(robot)` gathers one robot's model,
+   and under `vmap` over envs that is one batched gather per control step (the cheapest of the variants measured,
+   see docs/benchmarks.md);
+5. gives inert geoms a margin of -1e4 m: MJX activates a contact when `dist < margin`, so inert geoms never touch
+   anything (in any pose, with self-collision on too) while the static contact structure stays shared.
+
+It also precomputes the per-robot constants the observation and action code needs (`Robots` for the policy,
+`Tables` for the simulation), all as arrays with the robot axis first.
+"""
+from __future__ import annotations
+
+import dataclasses
+from typing import NamedTuple, Sequence
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+from mujoco import mjx
+
+from ..unimal.mjcf import compile_model
+from ..unimal.morphology import MAX_NODES, Morphology
+from . import padding
+from .padding import SolverOptions, WorldSpec
+from .supertree import SharedTree, build_shared_tree
+
+INERT_MARGIN = -1.0e4
+N_FEAT = 52
+N_CTX = 35
+# feature layout of one token (spec/environments.md §6): limb part 30, then 2 joint slots of 11
+TIME_VARYING = tuple(range(13)) + (30, 31, 41, 42)
+STATIC = tuple(i for i in range(N_FEAT) if i not in TIME_VARYING)   # the 35 context features, in order
+
+# ModuMorph's fixed context bounds (metamorph/envs/modules/agent.py), in the order of the 35 static features
+_LIMB_BOUNDS = [
+    ((-0.5, -0.45, -0.49), (0.5, 0.45, 2.04)),                              # body_pos
+    ((-0.225, -0.225, -0.225), (0.225, 0.225, 0.0)),                        # body_ipos
+    ((0.70710678, -0.70710678, -0.70710678, 0.0), (1.0, 0.70710678, 0.70710678, 0.0)),  # body_iquat
+    ((0.70710678, -0.70710678, -0.70710678, 0.0), (1.0, 0.70710678, 0.70710678, 0.0)),  # geom_quat
+    ((1.17809725,), (4.1887902,)),                                          # body_mass
+    ((0.05, 0.0), (0.1, 0.22627417)),                                       # body_shape
+]
+_JOINT_BOUNDS = [
+    ((-0.05, -0.05, 0.0), (0.05, 0.05, 0.05)),                              # jnt_pos
+    ((-1.57079633, 0.0), (0.0, 1.57079633)),                                # joint_range
+    ((-0.5000024, -0.5000024, -1.0), (1.0, 1.0, 1.0)),                      # joint_axis
+    ((0.0,), (300.0,)),                                                     # gear
+]
+
+
+def _bounds(parts):
+    lo = np.concatenate([np.asarray(a, np.float64) for a, _ in parts])
+    hi = np.concatenate([np.asarray(b, np.float64) for _, b in parts])
+    return lo, hi
+
+
+LIMB_LO, LIMB_HI = _bounds(_LIMB_BOUNDS)     # 17
+JOINT_LO, JOINT_HI = _bounds(_JOINT_BOUNDS)  # 9
+
+
+def normalise_context(x: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """ModuMorph's map: -1*(lo != hi) + 2 (x - lo) / (hi - lo + 1e-8)."""
+    return -1.0 * (lo != hi) + 2.0 * (x - lo) / (hi - lo + 1e-8)
+
+
+class Robots(NamedTuple):
+    """Per-robot constants for the policy (robot axis first). Token t: 0 = torso, then the robot's limbs in the
+    MuJoCo body order of its own file; action entry 2t + k is token t's joint slot k (0 = x, 1 = y)."""
+    context: jax.Array     # (R, 12, 35) float32, normalised with ModuMorph's fixed bounds, padded tokens 0
+    node_mask: jax.Array   # (R, 12) bool, True = real token
+    act_mask: jax.Array    # (R, 24) bool, True = real actuator
+
+
+class Tables(NamedTuple):
+    """Per-robot constants for the simulation (robot axis first)."""
+    body_of_token: jax.Array   # (R, 12) int32 body id (slot + 1) per token
+    geom_of_token: jax.Array   # (R, 12) int32
+    qadr_of_action: jax.Array  # (R, 24) int32 qpos address of the joint behind an action entry (7 where masked)
+    vadr_of_action: jax.Array  # (R, 24) int32 dof address (6 where masked)
+    ctrl_src: jax.Array        # (R, nu) int32 action entry driving actuator a, 24 (a constant 0) where none
+    real_qpos: jax.Array       # (R, nq) bool
+    real_dof: jax.Array        # (R, nv) bool
+    static_feat: jax.Array     # (R, 12, 52) float32 raw static features in place, time-varying entries 0
+    jnt_lo: jax.Array          # (R, 24) float32 joint range low (rad) per action entry (0 where masked)
+    jnt_span: jax.Array        # (R, 24) float32 hi - lo (1 where masked)
+    orig_height: jax.Array     # (R,) float32 z0 - 0.2 (MetaMorph's orig_height)
+
+
+@dataclasses.dataclass(frozen=True)
+class StackedModel:
+    robots: tuple[Morphology, ...]
+    tree: SharedTree
+    model: mjx.Model            # varying leaves carry a leading robot axis
+    axes: mjx.Model             # same structure, leaves 0 (stacked) or None (shared)
+    policy: Robots
+    tables: Tables
+    mj_models: tuple[mujoco.MjModel, ...]
+    world: WorldSpec
+    options: SolverOptions
+
+    @property
+    def num_robots(self) -> int:
+        return len(self.robots)
+
+    @property
+    def names(self) -> list[str]:
+        return [m.name for m in self.robots]
+
+    def model_for(self, robot: jax.Array) -> mjx.Model:
+        """The MJX model of one robot (a gather along the robot axis; vmap it over envs)."""
+        return jax.tree_util.tree_map(lambda x, a: x if a is None else x[robot], self.model, self.axes,
+                                      is_leaf=lambda x: x is None)
+
+    def size_summary(self) -> dict:
+        m0 = self.mj_models[0]
+        return {"robots": self.num_robots, "bodies": self.tree.num_slots, "limb_slots": self.tree.num_limb_slots,
+                "nq": int(m0.nq), "nv": int(m0.nv), "nu": int(m0.nu), "ngeom": int(m0.ngeom),
+                "max_robot_bodies": max(m.num_nodes for m in self.robots)}
+
+
+def _fix_static(mm: mujoco.MjModel) -> None:
+    mm.body_sameframe[:] = 0
+    mm.geom_sameframe[:] = 0
+    mm.body_simple[:] = 0
+    mm.dof_simplenum[:] = 0
+
+
+def _trace_m(mm: mujoco.MjModel) -> float:
+    """trace of the joint-space inertia at qpos0."""
+    d = mujoco.MjData(mm)
+    mujoco.mj_forward(mm, d)
+    full = np.zeros((mm.nv, mm.nv))
+    mujoco.mj_fullM(mm, d, full)
+    return float(np.trace(full))
+
+
+def compile_padded(robots: Sequence[Morphology], tree: SharedTree, world: WorldSpec,
+                   options: SolverOptions) -> list[mujoco.MjModel]:
+    """Compile every padded robot. The solver's tolerance is rescaled per robot: MuJoCo and MJX measure the
+    solver's improvement, gradient and line-search tolerance relative to trace(M), which the locked joints'
+    armature inflates by ~1e5; `tolerance * trace(M alone) / trace(M padded)` (at qpos0) gives the padded robot
+    the early-exit and line-search behaviour of the robot alone."""
+    out = []
+    for r, m in enumerate(robots):
+        mm = mujoco.MjModel.from_xml_string(padding.padded_mjcf(m, tree, r, world, options))
+        _fix_static(mm)
+        mm.opt.tolerance = mm.opt.tolerance * _trace_m(compile_model(m)) / _trace_m(mm)
+        out.append(mm)
+    return out
+
+
+def _stack(models: list[mjx.Model]) -> tuple[mjx.Model, mjx.Model]:
+    leaves0, treedef = jax.tree_util.tree_flatten(models[0])
+    all_leaves = [leaves0]
+    for i, mx in enumerate(models[1:], 1):
+        leaves, td = jax.tree_util.tree_flatten(mx)
+        if td != treedef:
+            raise RuntimeError(_diff_static(models[0], mx, i))
+        all_leaves.append(leaves)
+    stacked, axes = [], []
+    for j in range(len(leaves0)):
+        col = [np.asarray(l[j]) for l in all_leaves]
+        if all(np.array_equal(col[0], c) for c in col[1:]):
+            stacked.append(jnp.asarray(col[0]))
+            axes.append(None)
+        else:
+            stacked.append(jnp.asarray(np.stack(col)))
+            axes.append(0)
+    return jax.tree_util.tree_unflatten(treedef, stacked), jax.tree_util.tree_unflatten(treedef, axes)
+
+
+def _diff_static(a: mjx.Model, b: mjx.Model, i: int) -> str:
+    bad = []
+    for f in dataclasses.fields(a):
+        va, vb = getattr(a, f.name), getattr(b, f.name)
+        if isinstance(va, np.ndarray) and not np.array_equal(va, vb):
+            bad.append(f.name)
+        elif isinstance(va, (int, float, bool)) and va != vb:
+            bad.append(f.name)
+    return f"padded robot {i} has a different static MJX structure than robot 0 in: {bad or 'nested fields'}"
+
+
+def build_stacked_model(robots: Sequence[Morphology], world: WorldSpec = WorldSpec(),
+                        options: SolverOptions = SolverOptions(), tree: SharedTree | None = None) -> StackedModel:
+    robots = tuple(robots)
+    tree = tree or build_shared_tree(robots)
+    mjm = compile_padded(robots, tree, world, options)
+    cpu = jax.devices("cpu")[0]
+    mxs = []
+    for mm in mjm:
+        mx = mjx.put_model(mm, device=cpu, impl="jax")
+        mxs.append(mx)
+    rb = np.max(np.stack([np.asarray(mx._impl.geom_rbound_hfield) for mx in mxs]), axis=0)
+    mxs = [mx.replace(_impl=mx._impl.replace(geom_rbound_hfield=rb)) for mx in mxs]
+    # inert geoms: never active (margin only decides activation in MJX; collision functions ignore it)
+    for r, (m, mx) in enumerate(zip(robots, mxs)):
+        used = {0} | set(tree.slot_of[r])
+        margin = np.asarray(mx.geom_margin).copy()
+        for s in range(tree.num_slots):
+            if s not in used:
+                margin[mjm[r].body_geomadr[s + 1]] = INERT_MARGIN
+        mxs[r] = mx.replace(geom_margin=margin)
+    model, axes = _stack(mxs)
+    policy, tables = _robot_constants(robots, tree, mjm)
+    return StackedModel(robots=robots, tree=tree, model=model, axes=axes, policy=policy, tables=tables,
+                        mj_models=tuple(mjm), world=world, options=options)
+
+
+def static_features(mm: mujoco.MjModel, body: int, joints: Sequence[int | None]) -> np.ndarray:
+    """The 52 features of one token with the time-varying entries 0 (float64). `joints[k]` is the joint id in
+    slot k or None. Reads the compiled model exactly as MetaMorph's agent.py does."""
+    f = np.zeros(N_FEAT)
+    g = mm.body_geomadr[body]
+    f[13:16] = mm.body_pos[body]
+    f[16:19] = mm.body_ipos[body]
+    f[19:23] = mm.body_iquat[body]
+    f[23:27] = mm.geom_quat[g]
+    f[27] = mm.body_mass[body]
+    f[28:30] = mm.geom_size[g, :2]
+    for k, j in enumerate(joints):
+        if j is None:
+            continue
+        o = 30 + 11 * k
+        a = j - 1                          # actuator order = joint order after the free joint
+        f[o + 2:o + 5] = mm.jnt_pos[j]
+        f[o + 5:o + 7] = mm.jnt_range[j]
+        f[o + 7:o + 10] = mm.jnt_axis[j]
+        f[o + 10] = mm.actuator_gear[a, 0]
+    return f
+
+
+def context_of(feat: np.ndarray, joints: Sequence[int | None]) -> np.ndarray:
+    """Normalised 35-dim context of one token from its static features (missing joint slots stay 0)."""
+    limb = normalise_context(feat[13:30], LIMB_LO, LIMB_HI)
+    parts = [limb]
+    for k in range(2):
+        o = 30 + 11 * k
+        if joints[k] is None:
+            parts.append(np.zeros(9))
+        else:
+            parts.append(normalise_context(feat[o + 2:o + 11], JOINT_LO, JOINT_HI))
+    return np.concatenate(parts)
+
+
+def _robot_constants(robots, tree: SharedTree, mjm) -> tuple[Robots, Tables]:
+    R = len(robots)
+    nu = mjm[0].nu
+    ctx = np.zeros((R, MAX_NODES, N_CTX), np.float32)
+    node_mask = np.zeros((R, MAX_NODES), bool)
+    act_mask = np.zeros((R, 2 * MAX_NODES), bool)
+    body_of_token = np.zeros((R, MAX_NODES), np.int32)
+    geom_of_token = np.zeros((R, MAX_NODES), np.int32)
+    qadr = np.full((R, 2 * MAX_NODES), 7, np.int32)
+    vadr = np.full((R, 2 * MAX_NODES), 6, np.int32)
+    ctrl_src = np.zeros((R, nu), np.int32)
+    real_qpos = np.zeros((R, mjm[0].nq), bool)
+    real_dof = np.zeros((R, mjm[0].nv), bool)
+    static = np.zeros((R, MAX_NODES, N_FEAT), np.float32)
+    jlo = np.zeros((R, 2 * MAX_NODES), np.float32)
+    jspan = np.ones((R, 2 * MAX_NODES), np.float32)
+    orig_height = np.zeros(R, np.float32)
+    for r, m in enumerate(robots):
+        t = padding.pad_tables(m, tree, r, MAX_NODES)
+        mm = mjm[r]
+        node_mask[r] = t.node_mask
+        act_mask[r] = t.act_mask
+        body_of_token[r] = t.body_of_token
+        geom_of_token[r] = mm.body_geomadr[t.body_of_token]
+        ctrl_src[r] = t.ctrl_src
+        real_qpos[r] = t.real_qpos
+        real_dof[r] = t.real_dof
+        orig_height[r] = m.height - 0.2
+        for tok in range(m.num_nodes):
+            joints = [int(t.jnt_of_action[2 * tok + k]) if t.act_mask[2 * tok + k] else None for k in range(2)]
+            f = static_features(mm, int(t.body_of_token[tok]), joints)
+            static[r, tok] = f
+            ctx[r, tok] = context_of(f, joints)
+            for k, j in enumerate(joints):
+                if j is not None:
+                    qadr[r, 2 * tok + k] = mm.jnt_qposadr[j]
+                    vadr[r, 2 * tok + k] = mm.jnt_dofadr[j]
+                    jlo[r, 2 * tok + k] = mm.jnt_range[j, 0]
+                    jspan[r, 2 * tok + k] = mm.jnt_range[j, 1] - mm.jnt_range[j, 0]
+    j = jnp.asarray
+    return (Robots(j(ctx), j(node_mask), j(act_mask)),
+            Tables(j(body_of_token), j(geom_of_token), j(qadr), j(vadr), j(ctrl_src), j(real_qpos), j(real_dof),
+                   j(static), j(jlo), j(jspan), j(orig_height)))

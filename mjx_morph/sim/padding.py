@@ -1,0 +1,203 @@
+"""Pad one robot onto a shared tree: the MJCF of the padded robot and its index tables.
+
+Every slot of the shared tree becomes one body with exactly two hinge joints (x then y), one capsule geom and two
+motors, so all padded robots of a set compile to models of one static structure (DESIGN.md):
+- a slot the robot uses gets the robot's limb: its body position, capsule (`fromto`, radius, density) and joints,
+  written with exactly the numbers of the robot's own file, so MuJoCo computes the same masses and inertias;
+- a limb with one joint gets a second, *locked* joint in the other slot: large armature, damping and stiffness,
+  a tiny range, gear 0; it stays at 0 to within ~1e-6 rad;
+- a slot the robot does not use is *inert*: at its parent's origin, near-zero mass (explicit `<inertial>`), a tiny
+  capsule, two locked joints, gear 0. Its geom can never make contact: the stacked model gives inert geoms a very
+  negative margin (see `model.py`), which MJX's constraint builder treats as "never active".
+Observation and action masks hide locked joints and inert slots (`model.py`).
+
+The world (floor, incline, height field) and the options (solver iterations, self-collision) come from the caller;
+robot geoms use contype 1 and conaffinity 1 with self-collision on, 0 with it off; terrain geoms contype 0,
+conaffinity 1, so with self-collision off only robot-terrain pairs are ever generated.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+
+from ..unimal.morphology import Joint, Morphology
+from .supertree import SharedTree
+
+def _num(x: float) -> str:
+    """Shortest text that reads back as the same float64."""
+    x = float(x)
+    if x == 0.0:
+        return "0"
+    r = repr(x)
+    return r[:-2] if r.endswith(".0") else r
+
+
+def _vec(v) -> str:
+    return " ".join(_num(x) for x in v)
+
+
+# Locked joints. With Euler's implicit damping, a locked dof moves at most ~|torque| / (armature/dt + damping)
+# per step and the spring pulls it back; the values keep it within ~1e-6 rad under the largest joint torques
+# (300 N m) and keep the explicit spring stable (stiffness * dt^2 / armature << 1).
+LOCK_ARMATURE = 1.0e4
+LOCK_DAMPING = 1.0e7
+LOCK_STIFFNESS = 1.0e7
+LOCK_RANGE_DEG = 1.0            # pad joints are limited (jnt_limited is static in MJX); never reached
+INERT_MASS = 1.0e-6
+INERT_INERTIA = 1.0e-9
+INERT_RADIUS = 1.0e-3
+
+
+@dataclasses.dataclass(frozen=True)
+class WorldSpec:
+    """What the task puts around the robot: MJCF snippets and the torso's start pose."""
+    assets: str = ""                      # inside <asset>
+    geoms: str = ""                       # inside <worldbody>, before the robot
+    incline_deg: float = 0.0              # torso start pose of the incline task (spec/environments.md §3.2)
+
+    def start_pose(self, z0: float):
+        """Torso start position and euler angles (degrees, or None) for a robot of standing height z0: on the
+        floor top z = 1, or 2 m from the lower end of the tilted slab, perpendicular to it."""
+        if self.incline_deg:
+            a = math.radians(self.incline_deg)
+            return (math.cos(a) * -73.0, 0.0, z0 + 1.0 - math.sin(a) * 73.0), (0.0, -self.incline_deg, 0.0)
+        return (0.0, 0.0, z0 + 1.0), None
+
+
+@dataclasses.dataclass(frozen=True)
+class SolverOptions:
+    iterations: int = 5
+    ls_iterations: int = 8
+    self_collision: bool = False
+    timestep: float = 0.005
+
+    def option_xml(self) -> str:
+        return (f'  <option timestep="{_num(self.timestep)}" iterations="{self.iterations}" '
+                f'ls_iterations="{self.ls_iterations}">\n'
+                '    <flag filterparent="enable"/>\n'
+                '  </option>')
+
+
+def _joint(name: str, j: Joint | None, kind: str, indent: str) -> str:
+    if j is None:   # locked pad joint
+        axis = "1 0 0" if kind == "x" else "0 1 0"
+        return (f'{indent}<joint name="{name}" pos="0 0 0" axis="{axis}" range="{-LOCK_RANGE_DEG} {LOCK_RANGE_DEG}" '
+                f'armature="{_num(LOCK_ARMATURE)}" damping="{_num(LOCK_DAMPING)}" stiffness="{_num(LOCK_STIFFNESS)}"/>')
+    return (f'{indent}<joint name="{name}" pos="{_vec(j.pos)}" axis="{_vec(j.axis)}" range="{_vec(j.range)}" '
+            f'armature="{_num(j.armature)}" damping="{_num(j.damping)}" stiffness="{_num(j.stiffness)}"/>')
+
+
+def padded_mjcf(m: Morphology, tree: SharedTree, robot: int, world: WorldSpec = WorldSpec(),
+                options: SolverOptions = SolverOptions()) -> str:
+    """MJCF text of robot `m` (index `robot` of the tree's set) padded onto `tree`, inside `world`."""
+    slots = tree.slot_of[robot]
+    limb_of_slot = {s: i for i, s in enumerate(slots)}
+    ca = 1 if options.self_collision else 0
+    lines = [
+        '<mujoco model="padded">',  # one name for all: name addresses are static in MJX
+        '  <compiler angle="degree"/>',
+        options.option_xml(),
+        "  <default>",
+        '    <motor ctrlrange="-1 1" ctrllimited="true"/>',
+        '    <joint type="hinge" limited="true" solimplimit="0 0.99 0.01"/>',
+        f'    <geom type="capsule" condim="3" friction="0.7 0.1 0.1" contype="1" conaffinity="{ca}"/>',
+        "  </default>",
+    ]
+    if world.assets:
+        lines += ["  <asset>", world.assets, "  </asset>"]
+    lines.append("  <worldbody>")
+    if world.geoms:
+        lines.append(world.geoms)
+    pos, eul = world.start_pose(m.height)
+    euler = f' euler="{_vec(eul)}"' if eul is not None else ""
+    lines += [
+        f'    <body name="torso/0" pos="{_vec(pos)}"{euler}>',
+        '      <freejoint name="root"/>',
+        f'      <geom name="torso/0" type="sphere" size="{_num(m.torso_radius)}" density="{_num(m.torso_density)}"/>',
+    ]
+
+    def write(slot: int, indent: str) -> None:
+        i = limb_of_slot.get(slot)
+        if i is None:
+            lines.append(f'{indent}<body name="slot/{slot}" pos="0 0 0">')
+            for k in "xy":
+                lines.append(_joint(f"slot{k}/{slot}", None, k, indent + "  "))
+            lines.append(f'{indent}  <inertial pos="0 0 0" mass="{_num(INERT_MASS)}" '
+                         f'diaginertia="{_num(INERT_INERTIA)} {_num(INERT_INERTIA)} {_num(INERT_INERTIA)}"/>')
+            lines.append(f'{indent}  <geom name="slot/{slot}" size="{_num(INERT_RADIUS)} {_num(INERT_RADIUS)}"/>')
+        else:
+            l = m.limbs[i]
+            lines.append(f'{indent}<body name="slot/{slot}" pos="{_vec(l.pos)}">')
+            for k in "xy":
+                lines.append(_joint(f"slot{k}/{slot}", l.joint(k), k, indent + "  "))
+            lines.append(f'{indent}  <geom name="slot/{slot}" fromto="0 0 0 {_vec(l.tip)}" size="{_num(l.radius)}" '
+                         f'density="{_num(l.density)}"/>')
+        for c in tree.children(slot):
+            write(c, indent + "  ")
+        lines.append(f"{indent}</body>")
+
+    for c in tree.children(0):
+        write(c, "      ")
+    lines += ["    </body>", "  </worldbody>", "  <actuator>"]
+    for s in range(1, tree.num_slots):
+        i = limb_of_slot.get(s)
+        for k in "xy":
+            j = m.limbs[i].joint(k) if i is not None else None
+            gear = j.gear if j is not None else 0.0
+            lines.append(f'    <motor name="slot{k}/{s}" joint="slot{k}/{s}" gear="{_num(gear)}"/>')
+    lines += ["  </actuator>", "</mujoco>", ""]
+    return "\n".join(lines)
+
+
+@dataclasses.dataclass(frozen=True)
+class PadTables:
+    """Index tables of one padded robot (numpy, stacked along the robot axis by `model.py`).
+
+    body_of_token[t]   body id (slot + 1) of policy token t (0 = torso, then limbs in the robot's own order);
+                       padding tokens point at the torso and are masked.
+    node_mask[t]       True for a real token (torso and limbs).
+    act_mask[2t+k]     True where token t has a real joint of kind k (0 = x, 1 = y).
+    jnt_of_action[2t+k] joint id (1 + 2*(slot-1) + k) of that action entry; 1 where masked.
+    ctrl_src[a]        for actuator a of the padded model, the action entry driving it, or 24 (= a zero) if none.
+    real_dof[v]        True for the dofs that are real (free joint and real hinges); pad dofs stay at 0.
+    """
+    body_of_token: np.ndarray
+    node_mask: np.ndarray
+    act_mask: np.ndarray
+    jnt_of_action: np.ndarray
+    ctrl_src: np.ndarray
+    real_qpos: np.ndarray
+    real_dof: np.ndarray
+
+
+def pad_tables(m: Morphology, tree: SharedTree, robot: int, max_nodes: int = 12) -> PadTables:
+    if m.num_nodes > max_nodes:
+        raise ValueError(f"{m.name}: {m.num_nodes} nodes, the policy has {max_nodes} tokens")
+    slots = tree.slot_of[robot]
+    nu = 2 * tree.num_limb_slots
+    body_of_token = np.ones(max_nodes, np.int32)
+    node_mask = np.zeros(max_nodes, bool)
+    node_mask[0] = True
+    act_mask = np.zeros(2 * max_nodes, bool)
+    jnt_of_action = np.ones(2 * max_nodes, np.int32)
+    ctrl_src = np.full(nu, 2 * max_nodes, np.int32)
+    real_qpos = np.zeros(7 + nu, bool)
+    real_dof = np.zeros(6 + nu, bool)
+    real_qpos[:7] = True
+    real_dof[:6] = True
+    for i, l in enumerate(m.limbs):
+        t = i + 1
+        s = slots[i]
+        body_of_token[t] = s + 1
+        node_mask[t] = True
+        for k, kind in enumerate("xy"):
+            if l.joint(kind) is not None:
+                a = 2 * (s - 1) + k          # actuator = joint - 1 = dof - 6 = qpos - 7
+                act_mask[2 * t + k] = True
+                jnt_of_action[2 * t + k] = 1 + a
+                ctrl_src[a] = 2 * t + k
+                real_qpos[7 + a] = True
+                real_dof[6 + a] = True
+    return PadTables(body_of_token, node_mask, act_mask, jnt_of_action, ctrl_src, real_qpos, real_dof)

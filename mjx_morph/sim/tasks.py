@@ -1,0 +1,58 @@
+"""The four UNIMAL tasks: constants of spec/environments.md §1-§3 in one table.
+
+| task     | terrain (physics)                         | stand ratio | side limit | height map obs |
+|----------|-------------------------------------------|-------------|------------|----------------|
+| ft       | plane, top z = 1                          | 0.5         | none       | no             |
+| incline  | plane tilted -10 deg about y (uphill +x)  | 0.2         | abs(y) >= 19 | no           |
+| csr      | per-episode corridor, height-field patch  | 0.3         | abs(y) >= 19 | yes          |
+| obstacle | floor + walls + 50 boxes, height-field patch | 0.5      | abs(y) >= 19 | yes          |
+
+Deviations from the original worlds (collected in the README):
+- ft: the 200 m x 200 m floor box is an infinite plane at z = 1 (the same surface wherever a robot can get in 20 s).
+- incline: the 150 m x 40 m tilted slab is an infinite tilted plane through the slab's top face; the slab's ends
+  are out of reach in 20 s and its sides are beyond the side limit.
+- csr and obstacle: see `terrain.py` (one moving height-field patch instead of boxes and per-segment height
+  fields; obstacles are height-field columns standing on the floor instead of boxes floating 0.1 m above it).
+"""
+from __future__ import annotations
+
+import dataclasses
+
+CONTROL_DT = 0.02
+FRAME_SKIP = 4
+EPISODE_LENGTH = 1000
+FLOOR_Z = 1.0            # TERRAIN.SIZE[2]: floor top where the robot starts
+FLOOR_OFFSET = 0.2       # TERRAIN.FLOOR_OFFSET: orig_height = z0 - 0.2
+RESET_NOISE = 0.005      # ENV.RESET_NOISE_SCALE
+
+
+@dataclasses.dataclass(frozen=True)
+class Task:
+    name: str
+    terrain: str                   # "plane", "incline", "corridor", "obstacles"
+    stand_ratio: float             # ENV.STAND_HEIGHT_RATIO
+    side_limit: float | None       # terminate when |y_torso| >= side_limit
+    hfield_obs: bool
+    incline_deg: float = 0.0       # TERRAIN.INCLINE_ANGLE magnitude (uphill along +x)
+    forward_weight: float = 1.0    # ENV.FORWARD_REWARD_WEIGHT
+    ctrl_cost_weight: float = 0.0  # ENV.CTRL_COST_WEIGHT
+
+    @property
+    def uses_hfield(self) -> bool:
+        return self.terrain in ("corridor", "obstacles")
+
+
+TASKS = {
+    "ft": Task("ft", "plane", 0.5, None, False),
+    "incline": Task("incline", "incline", 0.2, 19.0, False, incline_deg=10.0),
+    "csr": Task("csr", "corridor", 0.3, 19.0, True),
+    "obstacle": Task("obstacle", "obstacles", 0.5, 19.0, True),
+}
+
+
+def get_task(name: str | Task) -> Task:
+    if isinstance(name, Task):
+        return name
+    if name not in TASKS:
+        raise ValueError(f"unknown task {name!r}; expected one of {', '.join(TASKS)}")
+    return TASKS[name]

@@ -1,0 +1,289 @@
+"""The batched environment on a tiny 2-robot config: reset, step, terminations, auto-reset, instability, and
+observation parity with a plain NumPy implementation of the spec (tests/sim_reference.py) on MuJoCo C data.
+
+One env and one compiled step per task (module-scoped), 3 envs, a 5-step time limit.
+"""
+from __future__ import annotations
+
+import math
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+import pytest
+
+import sim_reference as ref
+from mjx_morph.sim import fidelity, sampling, terrain
+from mjx_morph.sim.env import EnvConfig, make_env
+from mjx_morph.sim.padding import SolverOptions
+from mjx_morph.sim.tasks import TASKS
+from mjx_morph.unimal.sets import load_set, unimals_root
+
+EPISODE = 5
+N = 3
+FAST = {"xla_backend_optimization_level": 0, "xla_llvm_disable_expensive_passes": True}
+
+
+def _two_robots():
+    try:
+        rs = load_set("gen/train").robots
+    except Exception:
+        rs = ()
+    if not rs:
+        if unimals_root() is None:
+            pytest.skip("no robots available: neither assets/gen/train nor ../shared/unimals_100 "
+                        "(set MJX_MORPH_UNIMALS)")
+        rs = load_set("unimal100/train").robots
+    tall = [m for m in rs if m.height >= 0.7]
+    a = tall[0]
+    b = next(m for m in tall if m.num_limbs != a.num_limbs)
+    return [a, b]
+
+
+@pytest.fixture(scope="module", params=list(TASKS))
+def bundle(request):
+    rs = _two_robots()
+    env = make_env(rs, request.param, episode_length=EPISODE)
+    return env, jax.jit(env.vreset, compiler_options=FAST), jax.jit(env.vstep, compiler_options=FAST)
+
+
+def _reset(bundle, robots=(0, 1, 0), seed=0):
+    env, vreset, _ = bundle
+    keys = jax.random.split(jax.random.PRNGKey(seed), len(robots))
+    return vreset(keys, jnp.asarray(robots, jnp.int32))
+
+
+def _sampler(env):
+    """Uniform sampler (always pass one: a None sampler is another pytree, i.e. another compilation)."""
+    return sampling.init(env.num_robots, "uniform")
+
+
+def _set(st, i, **fields):
+    """Copy of batched state `st` with env i's fields replaced."""
+    return st._replace(**{k: getattr(st, k).at[i].set(v) for k, v in fields.items()})
+
+
+def test_reset(bundle):
+    env, _, _ = bundle
+    st = _reset(bundle)
+    task = env.task
+    assert st.obs.proprio.shape == (N, 12, 52) and st.obs.prev_action.shape == (N, 24)
+    assert st.obs.hfield.shape == ((N, 1410) if task.hfield_obs else (N, 0))
+    np.testing.assert_array_equal(st.obs.robot, [0, 1, 0])
+    assert not st.done.any() and (st.t == 0).all() and (st.obs.prev_action == 0).all()
+    pol = jax.tree_util.tree_map(np.asarray, env.robots)
+    for i, r in enumerate([0, 1, 0]):
+        m = env.morphologies[r]
+        prop = np.asarray(st.obs.proprio[i])
+        assert np.isfinite(prop).all() and (prop[m.num_nodes:] == 0).all()
+        pos, _ = env.sm.world.start_pose(m.height)
+        np.testing.assert_allclose(np.asarray(st.qpos[i, :3]), pos, atol=0.0051)
+        assert pol.node_mask[r].sum() == m.num_nodes
+    if task.hfield_obs:
+        assert np.isfinite(np.asarray(st.obs.hfield)).all()
+
+
+def test_step_time_limit_and_auto_reset(bundle):
+    env, _, vstep = bundle
+    st = _reset(bundle)
+    act = jnp.zeros((N, 24))
+    for t in range(1, EPISODE + 1):
+        prev = st
+        st = vstep(st, act, _sampler(env))
+        assert np.isfinite(np.asarray(st.reward)).all()
+        assert np.isfinite(np.asarray(st.obs.proprio)).all()
+        if t < EPISODE:
+            assert not st.done.any(), f"an episode ended at step {t} standing still"
+            np.testing.assert_array_equal(st.t, t)
+            # reward = forward speed of the torso
+            dx = np.asarray(st.torso_x - prev.torso_x) / 0.02
+            if env.task.incline_deg:
+                dx = dx / math.cos(math.radians(env.task.incline_deg))
+            np.testing.assert_allclose(st.reward, dx, rtol=1e-4, atol=1e-4)
+    assert st.done.all() and st.truncated.all() and st.episode.timeout.all()
+    assert not st.episode.fell.any() and not st.episode.unstable.any()
+    np.testing.assert_array_equal(st.episode.length, EPISODE)
+    np.testing.assert_array_equal(st.t, 0)                         # auto-reset: a new episode started
+    assert (st.obs.prev_action == 0).all() and (st.ep_return == 0).all()
+
+
+def test_actions_are_masked_and_clamped(bundle):
+    env, _, vstep = bundle
+    st = _reset(bundle)
+    act = jnp.full((N, 24), 3.0, jnp.float32)
+    st = vstep(st, act, _sampler(env))
+    am = np.asarray(env.robots.act_mask)[[0, 1, 0]]
+    np.testing.assert_array_equal(np.asarray(st.obs.prev_action), np.where(am, 1.0, 0.0))
+
+
+def test_fall_terminates(bundle):
+    env, _, vstep = bundle
+    task = env.task
+    if task.terrain == "incline":
+        pytest.skip("incline fall threshold is below the torso radius for these robots "
+                    "(tests/test_sim_tree.py::test_reward_and_terminations)")
+    st = _reset(bundle)
+    q = np.asarray(st.qpos[0]).copy()
+    q[2] = 1.0 + 0.105                                  # torso resting on the floor, upside down
+    q[3:7] = [0.0, 1.0, 0.0, 0.0]
+    st = _set(st, 0, qpos=jnp.asarray(q), qvel=jnp.zeros_like(st.qvel[0]))
+    st = vstep(st, jnp.zeros((N, 24)), _sampler(env))
+    assert bool(st.done[0]) and bool(st.episode.fell[0])
+    assert not bool(st.truncated[0]) and not bool(st.episode.unstable[0])
+    assert not st.done[1:].any()
+    assert int(st.t[0]) == 0 and int(st.episode.length[0]) == 1
+
+
+def test_side_limit_terminates(bundle):
+    env, _, vstep = bundle
+    if env.task.side_limit is None:
+        pytest.skip("ft has no side limit")
+    st = _reset(bundle)
+    q = np.asarray(st.qpos[1]).copy()
+    q[1] = 19.2
+    st = _set(st, 1, qpos=jnp.asarray(q))
+    st = vstep(st, jnp.zeros((N, 24)), _sampler(env))
+    assert bool(st.done[1]) and bool(st.episode.out_of_bounds[1]) and not bool(st.truncated[1])
+
+
+def test_instability_resets_and_is_counted(bundle):
+    env, _, vstep = bundle
+    st = _reset(bundle)
+    v = np.asarray(st.qvel[0]).copy()
+    v[0] = np.nan
+    st = _set(st, 0, qvel=jnp.asarray(v))
+    v2 = np.asarray(st.qvel[2]).copy()
+    v2[6:] = 1e5 * np.asarray(env.tables.real_dof[0, 6:])              # exploding joint velocities
+    st = _set(st, 2, qvel=jnp.asarray(v2))
+    st = vstep(st, jnp.zeros((N, 24)), _sampler(env))
+    for i in (0, 2):
+        assert bool(st.done[i]) and bool(st.episode.unstable[i]) and bool(st.truncated[i])
+        assert not bool(st.episode.fell[i]) and float(st.reward[i]) == 0.0
+        assert int(st.t[i]) == 0
+    assert not bool(st.done[1])
+    for leaf in jax.tree_util.tree_leaves(st.obs):
+        assert np.isfinite(np.asarray(leaf, np.float64)).all()
+    assert np.isfinite(np.asarray(st.qpos)).all() and np.isfinite(np.asarray(st.qvel)).all()
+
+
+def test_auto_reset_draws_from_sampler(bundle):
+    env, _, vstep = bundle
+    st = _reset(bundle, robots=(0, 0, 0))
+    sampler = sampling.init(env.num_robots)._replace(probs=jnp.asarray([0.0, 1.0]))
+    v = np.asarray(st.qvel[1]).copy()
+    v[0] = np.inf
+    st = _set(st, 1, qvel=jnp.asarray(v))
+    st = vstep(st, jnp.zeros((N, 24)), sampler)
+    assert bool(st.done[1]) and int(st.robot[1]) == 1 and int(st.obs.robot[1]) == 1
+    assert int(st.episode.robot[1]) == 0
+    np.testing.assert_array_equal(np.asarray(st.robot)[[0, 2]], 0)
+
+
+# ---- observation parity with the NumPy reference on MuJoCo C data --------------------------------------------------
+def test_proprio_and_context_match_numpy_reference(bundle):
+    env, _, _ = bundle
+    if env.task.name != "ft":
+        pytest.skip("checked on ft (the robot features do not depend on the task)")
+    observe = jax.jit(env.observe)
+    tab = jax.tree_util.tree_map(np.asarray, env.tables)
+    pol = jax.tree_util.tree_map(np.asarray, env.robots)
+    rng = np.random.default_rng(0)
+    for r, m in enumerate(env.morphologies):
+        ma = fidelity.alone_model(m, SolverOptions())
+        ent = np.nonzero(pol.act_mask[r])[0]
+        for trial in range(3):
+            # a random state: torso anywhere and rotated, joints inside their ranges, random velocities
+            q = ma.qpos0.copy()
+            q[:3] = [rng.uniform(-5, 5), rng.uniform(-5, 5), rng.uniform(1.2, 2.0)]
+            quat = rng.normal(size=4)
+            q[3:7] = quat / np.linalg.norm(quat)
+            lo, hi = ma.jnt_range[1:, 0], ma.jnt_range[1:, 1]
+            q[7:] = rng.uniform(lo, hi)
+            v = rng.normal(0, 2.0, ma.nv)
+            d = mujoco.MjData(ma)
+            d.qpos[:], d.qvel[:] = q, v
+            mujoco.mj_forward(ma, d)
+            want = ref.proprio(ma, d)
+            qp = np.asarray(env.sm.mj_models[r].qpos0).copy()
+            qp[:7] = q[:7]
+            qp[tab.qadr_of_action[r, ent]] = q[7:]
+            vp = np.zeros(env.sm.mj_models[r].nv)
+            vp[:6] = v[:6]
+            vp[tab.vadr_of_action[r, ent]] = v[6:]
+            got = np.asarray(observe(r, qp, vp).proprio)
+            np.testing.assert_allclose(got, want, rtol=1e-5, atol=2e-5, err_msg=f"{m.name} trial {trial}")
+        np.testing.assert_allclose(pol.context[r], ref.context(ma), rtol=1e-5, atol=1e-5)
+        node, act = ref.masks(ma)
+        np.testing.assert_array_equal(pol.node_mask[r], node)
+        np.testing.assert_array_equal(pol.act_mask[r], act)
+
+
+def test_hfield_obs_and_torso_height_match_numpy_reference(bundle):
+    env, _, _ = bundle
+    task = env.task
+    if not task.hfield_obs:
+        pytest.skip("no height map in this task")
+    st = _reset(bundle, seed=3)
+    ts = jax.tree_util.tree_map(lambda x: np.asarray(x[0]), st.terrain)
+    walls = task.terrain == "obstacles"
+    H = (ref.obstacle_H(ts.col, ts.row, ts.sx, ts.sy, ts.valid) if walls else
+         ref.corridor_H(ts.seg_end, ts.seg_kind, ts.seg_height, ts.seg_rug, ts.band_end, ts.band_f, ts.band_clip))
+    # the reset observation (axis-aligned) at the torso position
+    x, y = float(st.qpos[0, 0]), float(st.qpos[0, 1])
+    np.testing.assert_allclose(np.asarray(st.obs.hfield[0]), ref.hfield_obs(H, walls, x, y, None), atol=2e-6)
+    # rotated grids anywhere in the world (pure terrain function)
+    obs_fn = jax.jit(lambda ts, x, y, a: terrain.hfield_obs(task.terrain, ts, x, y, a))
+    tsj = jax.tree_util.tree_map(lambda x: x[0], st.terrain)
+    rng = np.random.default_rng(1)
+    for _ in range(20):
+        x, y, a = rng.uniform(-2, 100), rng.uniform(-19, 19), rng.uniform(-np.pi, np.pi)
+        want = ref.hfield_obs(H, walls, x, y, np.array([np.cos(a), np.sin(a)]))
+        got = np.asarray(obs_fn(tsj, jnp.float32(x), jnp.float32(y), jnp.float32(a)))
+        assert np.abs(got - want).max() < 2e-6, (x, y, a)
+        r, c = ref.torso_idx(H, walls, x, y)
+        ground = float(terrain.ground_height(task, tsj, jnp.float32(x), jnp.float32(y)))
+        assert abs(ground - max(0.0, H[r, c])) < 1e-6
+
+
+def test_mjx_collides_with_the_terrain_under_the_torso(bundle):
+    """The per-env height-field patch is where MJX collides: over a raised part of the terrain (the top of a
+    slope or of the steps in csr, an obstacle top) the torso sphere sunk 1 cm into it has a contact at -1 cm,
+    1 cm above it none."""
+    env, _, _ = bundle
+    task = env.task
+    if task.terrain != "corridor":
+        pytest.skip("checked on csr (obstacle uses the same patch code; tests/test_sim_fidelity.py ray-casts both)")
+    from mujoco import mjx
+    st = _reset(bundle, seed=7)
+    ts = jax.tree_util.tree_map(lambda x: x[0], st.terrain)
+    cols = jnp.arange(0, 1000)
+    rows = jnp.full_like(cols, 200)
+    if task.terrain == "obstacles":
+        valid = np.asarray(ts.valid)
+        i = int(np.argmax(valid))
+        c, r = int(ts.col[i]), 400 - int(ts.row[i])
+    else:
+        h = np.asarray(terrain.physical_height(task.terrain, ts, cols, rows))
+        c, r = int(np.argmax(h)), 200
+    top = float(terrain.physical_height(task.terrain, ts, jnp.int32(c), jnp.int32(r)))
+    assert top > 1.1
+    x, y = -3 + c / 10 + 0.05, (200 - r) / 10 + 0.05
+    q = np.asarray(st.qpos[0]).copy()
+    q[:2] = [x, y]
+
+    @jax.jit
+    def torso_dist(q):
+        m = env._model(jnp.int32(0), ts, q)
+        d = env._template.replace(qpos=q)
+        d = mjx.kinematics(m, d)
+        d = mjx.collision(m, d)
+        c = d._impl.contact
+        torso_geom = env.sm.mj_models[0].body_geomadr[1]
+        sel = (c.geom[:, 1] == torso_geom) | (c.geom[:, 0] == torso_geom)
+        return jnp.min(jnp.where(sel, c.dist, jnp.inf))
+
+    q[2] = top + 0.1 - 0.01
+    assert -0.02 < float(torso_dist(jnp.asarray(q))) < -0.005
+    q[2] = top + 0.1 + 0.01
+    assert float(torso_dist(jnp.asarray(q))) > 0.0

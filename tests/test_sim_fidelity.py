@@ -1,0 +1,73 @@
+"""Fidelity: padded robots in the stacked MJX model against the same robots alone in MuJoCo C (CPU, 2 robots).
+The whole-set check is `python -m experiments.check_sim SET` (docs/benchmarks.md has the numbers)."""
+from __future__ import annotations
+
+import jax
+import mujoco
+import numpy as np
+import pytest
+
+from mjx_morph.sim import cpu_linalg, fidelity, terrain
+from mjx_morph.sim.padding import SolverOptions
+from mjx_morph.unimal.sets import load_set, unimals_root
+
+
+def _robots(n: int):
+    try:
+        rs = load_set("gen/train").robots
+    except Exception:
+        rs = ()
+    if not rs:
+        if unimals_root() is None:
+            pytest.skip("no robots available: neither assets/gen/train nor ../shared/unimals_100 "
+                        "(set MJX_MORPH_UNIMALS)")
+        rs = load_set("unimal100/train").robots
+    out = []
+    for m in rs:
+        if not out or m.num_limbs != out[-1].num_limbs:
+            out.append(m)
+        if len(out) == n:
+            return out
+    return out
+
+
+def test_padded_mjx_matches_mujoco_c_at_default_settings():
+    res = fidelity.compare(_robots(2), SolverOptions(), steps=25)
+    for r in res:
+        assert r.error < fidelity.TOLERANCE, (r.name, r.error)
+
+
+def test_cpu_cholesky_matches_lapack():
+    rng = np.random.default_rng(0)
+    a = rng.normal(size=(4, 12, 12))
+    a = a @ a.transpose(0, 2, 1) + 12 * np.eye(12)
+    b = rng.normal(size=(4, 12))
+    c, low = cpu_linalg.cho_factor(a)
+    np.testing.assert_allclose(np.asarray(c), np.linalg.cholesky(a).transpose(0, 2, 1), rtol=1e-4, atol=1e-4)
+    np.testing.assert_allclose(np.asarray(cpu_linalg.cho_solve((c, low), b)), np.linalg.solve(a, b[..., None])[..., 0],
+                               rtol=1e-4, atol=1e-4)
+
+
+@pytest.mark.parametrize("kind", ["corridor", "obstacles"])
+def test_height_field_patch_is_the_observed_terrain(kind):
+    """MuJoCo C ray casts on the physical height-field patch hit the terrain function's cell heights."""
+    p = 41
+    asset, geom = terrain.hfield_world_xml(p)
+    ts = terrain.generate(kind, jax.random.PRNGKey(5))
+    rng = np.random.default_rng(0)
+    for x0, y0 in [(rng.uniform(0, 90), rng.uniform(-18, 18)) for _ in range(3)] + [(95.5, 19.0)]:
+        data, pos = jax.jit(lambda ts, x, y: terrain.patch(kind, ts, x, y, p))(ts, x0, y0)
+        g = geom.replace(f'pos="0 0 {terrain.Z_LO:g}"', 'pos="{} {} {}"'.format(*np.asarray(pos, np.float64)))
+        mm = mujoco.MjModel.from_xml_string(f"<mujoco><asset>{asset}</asset><worldbody>{g}</worldbody></mujoco>")
+        mm.hfield_data[:] = np.asarray(data)
+        d = mujoco.MjData(mm)
+        mujoco.mj_forward(mm, d)
+        ct, rt = terrain.cell_of(np.float32(x0), np.float32(y0))
+        for dc, dr in [(0, 0), (7, -3), (-12, 15), (18, 18), (-18, -17)]:
+            c, r = int(ct) + dc, int(rt) + dr
+            x = -3 + c / 10 + 0.05
+            y = (200 - r) / 10 + 0.05
+            geomid = np.zeros(1, np.int32)
+            dist = mujoco.mj_ray(mm, d, np.array([x, y, 20.0]), np.array([0, 0, -1.0]), None, 1, -1, geomid)
+            want = float(terrain.physical_height(kind, ts, np.int32(c), np.int32(r)))
+            assert abs((20.0 - dist) - want) < 1e-4, (kind, x, y, 20.0 - dist, want)

@@ -1,0 +1,188 @@
+"""Shared tree, padding, stacked model and robot sampling: checks that need no MJX compilation (fast)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import jax
+import jax.numpy as jnp
+import mujoco
+
+from mjx_morph.sim import fidelity, padding, sampling, supertree
+from mjx_morph.sim.model import build_stacked_model, INERT_MARGIN
+from mjx_morph.sim.padding import SolverOptions, WorldSpec
+from mjx_morph.unimal.sets import load_set, unimals_root
+
+
+def _robots(n: int):
+    """n robots of different shapes: the shipped generated set when present, else the original train robots."""
+    try:
+        rs = load_set("gen/train").robots
+    except Exception:
+        rs = ()
+    if not rs:
+        if unimals_root() is None:
+            pytest.skip("no robots available: neither assets/gen/train nor ../shared/unimals_100 "
+                        "(set MJX_MORPH_UNIMALS)")
+        rs = load_set("unimal100/train").robots
+    out, shapes = [], set()
+    for m in rs:
+        shape = supertree._robot_shape(m)
+        if shape not in shapes:
+            shapes.add(shape)
+            out.append(m)
+        if len(out) == n:
+            break
+    return out
+
+
+def test_shared_tree_embeds_every_robot():
+    rs = _robots(6)
+    tree = supertree.build_shared_tree(rs)
+    tree.check(rs)
+    assert all(tree.parent[s] < s for s in range(1, tree.num_slots))
+    assert tree.num_slots >= max(m.num_nodes for m in rs)
+    assert tree.num_slots <= sum(m.num_limbs for m in rs) + 1
+    assert tree.users[0] == len(rs)
+    # deterministic
+    assert supertree.build_shared_tree(rs) == tree
+
+
+@pytest.mark.skipif(unimals_root() is None, reason="original robots not available (../shared/unimals_100)")
+def test_tree_sizes_of_original_sets():
+    train = supertree.build_shared_tree(load_set("unimal100/train").robots)
+    test = supertree.build_shared_tree(load_set("unimal100/test").robots)
+    assert train.num_slots <= 28          # DESIGN.md measured 28 bodies; we find 27
+    assert test.num_slots <= 29
+
+
+def test_stacked_model_tables_and_masks():
+    rs = _robots(3)
+    sm = build_stacked_model(rs, WorldSpec(geoms=fidelity.FLOOR), SolverOptions())
+    R, S = len(rs), sm.tree.num_slots
+    mm = sm.mj_models[0]
+    assert mm.nbody == S + 1 and mm.nu == 2 * (S - 1) and mm.nv == 6 + 2 * (S - 1)
+    pol = jax.tree_util.tree_map(np.asarray, sm.policy)
+    tab = jax.tree_util.tree_map(np.asarray, sm.tables)
+    assert pol.context.shape == (R, 12, 35) and pol.node_mask.shape == (R, 12) and pol.act_mask.shape == (R, 24)
+    for r, m in enumerate(rs):
+        assert pol.node_mask[r].sum() == m.num_nodes and pol.node_mask[r, :m.num_nodes].all()
+        assert pol.act_mask[r].sum() == m.dof
+        assert not pol.act_mask[r, :2].any()                         # the torso has no joints
+        for i, l in enumerate(m.limbs):
+            for k, kind in enumerate("xy"):
+                assert pol.act_mask[r, 2 * (i + 1) + k] == (l.joint(kind) is not None)
+        # every real actuator is driven by exactly its action entry, the others by the constant zero
+        driven = tab.ctrl_src[r][tab.ctrl_src[r] < 24]
+        assert sorted(driven.tolist()) == np.nonzero(pol.act_mask[r])[0].tolist()
+        gear = sm.mj_models[r].actuator_gear[:, 0]
+        assert np.all(gear[tab.ctrl_src[r] == 24] == 0) and np.all(gear[tab.ctrl_src[r] < 24] > 0)
+        # inert geoms never make contact
+        margin = np.asarray(sm.model.geom_margin)[r]
+        used = {0} | set(sm.tree.slot_of[r])
+        for s in range(S):
+            g = sm.mj_models[r].body_geomadr[s + 1]
+            assert (margin[g] == INERT_MARGIN) == (s not in used)
+        assert pol.context[r, m.num_nodes:].sum() == 0
+
+
+def test_padded_robot_matches_robot_alone_in_mujoco_c():
+    """The padding itself (locked joints, inert slots) in MuJoCo C: same masses, same motion."""
+    rs = _robots(2)
+    opts = SolverOptions(iterations=100, ls_iterations=50)
+    tree = supertree.build_shared_tree(rs)
+    for r, m in enumerate(rs):
+        mp = mujoco.MjModel.from_xml_string(padding.padded_mjcf(m, tree, r, WorldSpec(geoms=fidelity.FLOOR), opts))
+        ma = fidelity.alone_model(m, opts)
+        bodies = [1] + [s + 1 for s in tree.slot_of[r]]
+        np.testing.assert_allclose(mp.body_mass[bodies], ma.body_mass[1:], rtol=1e-12)
+        np.testing.assert_allclose(mp.body_inertia[bodies], ma.body_inertia[1:], rtol=1e-12)
+        t = padding.pad_tables(m, tree, r)
+        order = [7 + 2 * (tree.slot_of[r][i] - 1) + "xy".index(j.kind) for i, l in enumerate(m.limbs) for j in l.joints]
+        dp, da = mujoco.MjData(mp), mujoco.MjData(ma)
+        rng = np.random.default_rng(r)
+        for _ in range(25):
+            a = rng.normal(0, 0.9, ma.nu)
+            da.ctrl[:] = a
+            dp.ctrl[:] = 0
+            dp.ctrl[np.asarray(order) - 7] = a
+            for _ in range(4):
+                mujoco.mj_step(ma, da)
+                mujoco.mj_step(mp, dp)
+        assert np.abs(dp.xpos[bodies] - da.xpos[1:]).max() < 1e-4
+        pad = np.ones(mp.nq, bool)
+        pad[:7] = False
+        pad[order] = False
+        assert np.abs(dp.qpos[pad]).max() < 1e-5                    # locked joints stay locked
+        assert t.real_qpos[order].all()
+
+
+def _sequential_reference(episodes, num_robots):
+    """MetaMorph's meter: mean of the first 10 episodes, then EMA 0.1 per episode."""
+    hist = {i: [] for i in range(num_robots)}
+    ema = {i: -1.0 for i in range(num_robots)}
+    for robot, length in episodes:
+        hist[robot].append(length)
+        n = len(hist[robot])
+        if n == 10:
+            ema[robot] = float(np.mean(hist[robot]))
+        elif n > 10:
+            ema[robot] = 0.1 * length + 0.9 * ema[robot]
+    return ema, {i: len(h) for i, h in hist.items()}
+
+
+def test_balanced_sampling_matches_sequential_ema():
+    R = 5
+    rng = np.random.default_rng(0)
+    st = sampling.init(R, "balanced")
+    all_eps = []
+    upd = jax.jit(sampling.update)
+    for it in range(35):
+        T, N = 7, 6
+        done = rng.random((T, N)) < 0.4
+        robots = rng.integers(0, R - 1, (T, N))                   # robot R-1 never finishes an episode
+        lengths = rng.integers(1, 1000, (T, N))
+        all_eps += [(int(robots[t, n]), int(lengths[t, n])) for t in range(T) for n in range(N) if done[t, n]]
+        st = upd(st, jnp.asarray(lengths), jnp.asarray(robots), jnp.asarray(done))
+        if it < 29:
+            np.testing.assert_allclose(st.probs, 1.0 / R)
+    ema, count = _sequential_reference(all_eps, R)
+    assert [int(c) for c in st.count] == [count[i] for i in range(R)]
+    for i in range(R - 1):
+        assert count[i] >= 10
+        np.testing.assert_allclose(float(st.ep_len[i]), ema[i], rtol=1e-4)
+    p = 1000.0 / np.array([ema[i] for i in range(R - 1)])
+    p_last = p.max()                                                 # guard: no episodes -> largest probability
+    want = np.append(p, p_last)
+    np.testing.assert_allclose(st.probs, want / want.sum(), rtol=1e-4)
+    # uniform mode never changes; draws follow the probabilities
+    u = upd(sampling.init(R, "uniform"), jnp.asarray(lengths), jnp.asarray(robots), jnp.asarray(done))
+    np.testing.assert_allclose(u.probs, 1.0 / R)
+    draws = jax.vmap(lambda k: sampling.sample(k, st, R))(jax.random.split(jax.random.PRNGKey(0), 4000))
+    freq = np.bincount(np.asarray(draws), minlength=R) / 4000
+    np.testing.assert_allclose(freq, np.asarray(st.probs), atol=0.03)
+
+
+def test_reward_and_terminations():
+    from mjx_morph.sim import reward, terrain
+    from mjx_morph.sim.tasks import TASKS
+    orig = jnp.float32(0.8)                                     # z0 = 1.0
+    act = jnp.ones(24)
+    mask = jnp.zeros(24, bool).at[2].set(True)
+    for name, task in TASKS.items():
+        ts = terrain.generate(task.terrain, jax.random.PRNGKey(0))
+        ground = float(terrain.ground_height(task, ts, jnp.float32(0.31), jnp.float32(0.0)))
+        thr = 0.8 * task.stand_ratio
+        x0 = 0.3
+        for height, fell in [(thr + 0.01, False), (thr - 0.01, True)]:
+            pos = jnp.asarray([x0 + 0.01, 0.0, ground + height], jnp.float32)
+            out = reward.evaluate(task, ts, jnp.float32(x0), pos, orig, act, mask)
+            assert bool(out.fell) == fell, (name, height)
+            speed = 0.01 / 0.02 / (np.cos(np.radians(task.incline_deg)) if task.incline_deg else 1.0)
+            np.testing.assert_allclose(float(out.reward), speed, rtol=1e-3)
+        side = reward.evaluate(task, ts, jnp.float32(x0), jnp.asarray([x0, -19.0, ground + 1.0]), orig, act, mask)
+        assert bool(side.out_of_bounds) == (task.side_limit is not None)
+    # incline ground: MetaMorph's array 1 + tan(10 deg) * floor(10 x) / 10
+    inc = TASKS["incline"]
+    g = float(terrain.ground_height(inc, terrain.NoTerrain(), jnp.float32(-71.89), jnp.float32(0.0)))
+    np.testing.assert_allclose(g, 1 + np.tan(np.radians(10)) * np.floor(-718.9) / 10, atol=1e-3)
