@@ -22,8 +22,12 @@ demo: $(STAMP)
 	$(BIN)/python -m experiments.run preset=smoke env=ft arch=rmomo robots=gen/train run_dir=runs/demo
 	@echo "learning curve: runs/demo/learning_curve.png"
 
+# the benchmarks (meant for a GPU; each prints one JSON line per case): env throughput of the four tasks and the
+# cost of self-collision, then end-to-end training throughput of R-MoMo and ModuMorph on flat terrain
 bench: $(STAMP)
-	$(BIN)/python -m experiments.bench_robots
+	$(BIN)/python -m experiments.bench_env 'cases=[{env: ft},{env: incline},{env: csr},{env: obstacle},{env: ft, self_collision: true}]'
+	$(BIN)/python -m experiments.bench_train env=ft arch=rmomo
+	$(BIN)/python -m experiments.bench_train env=ft arch=modumorph
 
 clean:
 	rm -rf $(VENV) .pytest_cache
