@@ -15,6 +15,7 @@ import time
 
 from mjx_morph.sim import fidelity
 from mjx_morph.sim.padding import SolverOptions
+from mjx_morph.sim.supertree import build_shared_tree
 from mjx_morph.unimal.sets import load_set
 
 
@@ -30,6 +31,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seed", type=int, default=0)
     a = p.parse_args(argv)
     rs = load_set(a.set)
+    tree = build_shared_tree(rs.robots)
+    print(f"# {rs.name}: shared tree of {tree.num_slots} bodies (nv {6 + 2 * tree.num_limb_slots}) "
+          f"for {len(rs)} robots of at most {max(m.num_nodes for m in rs.robots)} bodies")
     settings = [(a.iterations, a.ls_iterations)]
     if a.defaults and (100, 50) not in settings:
         settings.append((100, 50))
@@ -37,7 +41,7 @@ def main(argv: list[str] | None = None) -> int:
     for it, ls in settings:
         opts = SolverOptions(iterations=it, ls_iterations=ls, self_collision=a.self_collision)
         t0 = time.time()
-        res = fidelity.compare(rs.robots, opts, steps=a.steps, seed=a.seed)
+        res = fidelity.compare(rs.robots, opts, steps=a.steps, seed=a.seed, tree=tree)
         print(f"# {rs.name}: {len(res)} robots, solver iterations {it}, line search {ls}, "
               f"self-collision {'on' if a.self_collision else 'off'}, {a.steps} control steps "
               f"({time.time() - t0:.0f} s)")

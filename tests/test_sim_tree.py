@@ -170,7 +170,7 @@ def test_reward_and_terminations():
     act = jnp.ones(24)
     mask = jnp.zeros(24, bool).at[2].set(True)
     for name, task in TASKS.items():
-        ts = terrain.generate(task.terrain, jax.random.PRNGKey(0))
+        ts = jax.jit(terrain.generate, static_argnums=0)(task.terrain, jax.random.PRNGKey(0))
         ground = float(terrain.ground_height(task, ts, jnp.float32(0.31), jnp.float32(0.0)))
         thr = 0.8 * task.stand_ratio
         x0 = 0.3

@@ -1,1 +1,42 @@
-"""mjx_morph.sim"""
+"""mjx_morph.sim: many UNIMAL robots in one batched MuJoCo-MJX simulation.
+
+Data flow (one idea per module):
+    supertree    shared tree of a robot set, the embedding of every robot, topology groups
+    padding      MJCF of a robot padded onto the tree (locked joints, inert slots) + its index tables
+    model        compile, fix up and stack the padded robots into one mjx.Model with a robot axis;
+                 per-robot constants for the policy (`Robots`) and the simulation (`Tables`)
+    tasks        the four tasks' constants (ft, incline, csr, obstacle)
+    terrain      per-episode corridors and obstacles, MetaMorph's height array, the moving height-field patch,
+                 the 1410-value height-map observation
+    observation  the 12 x 52 proprioceptive observation
+    reward       reward, fall and side-limit terminations
+    sampling     balanced / uniform robot sampling (a state the training loop updates once per iteration)
+    env          `Env`: reset / step / vreset / vstep / init / observe; `make_env`
+    contact      MuJoCo C's plane-capsule contact frames for MJX
+    cpu_linalg   pure-JAX Cholesky for MJX on CPU with jaxlib < 0.11 (deadlock workaround)
+    fidelity     padded MJX robots against the robots alone in MuJoCo C (`experiments.check_sim`)
+
+Public API:
+    env = make_env(robots, task=None, config=None, **EnvConfig overrides)   # robots: set name, RobotSet, list
+    env.robots: Robots(context (R,12,35), node_mask (R,12) True = real, act_mask (R,24) True = real)
+    env.reset(key, robot) -> EnvState;  env.step(state, action (24,), sampler=None) -> EnvState
+    env.vreset(keys, robots);  env.vstep(states, actions (N,24), sampler);  env.init(key, num_envs, sampler)
+    env.observe(robot, qpos, qvel, terrain_state=None, prev_action=None) -> Obs
+    EnvState.obs: Obs(proprio (12,52) raw, prev_action (24,), hfield (1410,) or (0,), robot ())
+    EnvState.reward / done / truncated / episode (Episode: ret, length, robot, fell, out_of_bounds, timeout,
+        unstable; meaningful where done)
+    sampling.init(R, "balanced" | "uniform"); sampling.update(state, lengths, robots, done); state.probs
+
+Deviations from MetaMorph / ModuMorph (each documented in its module):
+- solver: 5 Newton iterations and 8 line-search iterations instead of 100 / 50 (env.py; fidelity numbers in
+  docs/benchmarks.md); physics in float32;
+- self-collision off by default (MetaMorph: on; option `self_collision`, ~11x slower);
+- ft / incline floors are infinite planes (tasks.py); csr / obstacle use one moving 0.1 m height-field patch
+  built from MetaMorph's height array, so observation and physics agree: no rugged-square y-mirror, obstacles
+  are columns standing on the floor instead of boxes floating 0.1 m above it (terrain.py);
+- capsule masses of MuJoCo >= 2.1 (3-5% above MuJoCo 2.0) (padding.py);
+- a NaN or exploding state ends the episode as `unstable` (MetaMorph: a MuJoCo exception silently skipped the
+  remaining substeps) (env.py);
+- plane-capsule contact frames follow MuJoCo C, not MJX 3.17 (contact.py);
+- body_xvelp / body_xvelr are mujoco-py's (velocity of the body origin), as MetaMorph read them (observation.py).
+"""

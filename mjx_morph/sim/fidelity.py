@@ -55,7 +55,8 @@ class Result:
 
 
 def compare(robots: Sequence[Morphology], options: SolverOptions = SolverOptions(), steps: int = 25,
-            substeps: int = 4, seed: int = 0, tree: SharedTree | None = None) -> list[Result]:
+            substeps: int = 4, seed: int = 0, tree: SharedTree | None = None,
+            compiler_options: dict | None = None) -> list[Result]:
     robots = tuple(robots)
     contact.install()
     cpu_linalg.install()
@@ -105,7 +106,7 @@ def compare(robots: Sequence[Morphology], options: SolverOptions = SolverOptions
         _, xs = jax.lax.scan(control, d, a24)
         return xs
 
-    f = jax.jit(jax.vmap(run))
+    f = jax.jit(jax.vmap(run), compiler_options=compiler_options)
     xs = np.asarray(f(jnp.arange(R), jnp.asarray(qpos, jnp.float32), jnp.asarray(qvel, jnp.float32),
                       jnp.asarray(act24, jnp.float32), jnp.asarray(tab.ctrl_src)))
     out = []

@@ -11,6 +11,11 @@ motors, so all padded robots of a set compile to models of one static structure 
   negative margin (see `model.py`), which MJX's constraint builder treats as "never active".
 Observation and action masks hide locked joints and inert slots (`model.py`).
 
+Masses: a real slot's capsule is written exactly as in the robot's file, so MuJoCo 4 computes its mass and
+inertia as for the robot alone; like every current MuJoCo (and MJX) that is 3-5% more than the MuJoCo 2.0 of the
+original runs gave (spec/unimal.md §9: MuJoCo >= 2.1 adds the hemispherical caps to a capsule's volume). A
+documented deviation, not corrected.
+
 The world (floor, incline, height field) and the options (solver iterations, self-collision) come from the caller;
 robot geoms use contype 1 and conaffinity 1 with self-collision on, 0 with it off; terrain geoms contype 0,
 conaffinity 1, so with self-collision off only robot-terrain pairs are ever generated.
@@ -22,25 +27,15 @@ import math
 
 import numpy as np
 
+from ..unimal.mjcf import _num, _vec  # the writer's exact float formatting
 from ..unimal.morphology import Joint, Morphology
 from .supertree import SharedTree
 
-def _num(x: float) -> str:
-    """Shortest text that reads back as the same float64."""
-    x = float(x)
-    if x == 0.0:
-        return "0"
-    r = repr(x)
-    return r[:-2] if r.endswith(".0") else r
 
-
-def _vec(v) -> str:
-    return " ".join(_num(x) for x in v)
-
-
-# Locked joints. With Euler's implicit damping, a locked dof moves at most ~|torque| / (armature/dt + damping)
-# per step and the spring pulls it back; the values keep it within ~1e-6 rad under the largest joint torques
-# (300 N m) and keep the explicit spring stable (stiffness * dt^2 / armature << 1).
+# Locked joints. Armature keeps the dof still inside the constraint solve, Euler's implicit damping inside the
+# integration, the spring pulls it back; stable since dt * stiffness / (armature / dt + damping) << 1. Measured
+# (MuJoCo C, padded vs alone, 100 train robots): locked dofs stay within ~1e-6 rad; softer locks (1e5) let bodies
+# drift 3e-4 m in 0.5 s, a larger armature (1e6) made the solver less accurate (2e-3 m).
 LOCK_ARMATURE = 1.0e4
 LOCK_DAMPING = 1.0e7
 LOCK_STIFFNESS = 1.0e7
