@@ -278,5 +278,4 @@ def test_robot_stands_on_raised_terrain(bundle):
     assert not bool(st.done[0]) and not bool(st.done[2])
     dz_plateau = float(st.qpos[0, 2]) - plateau[2]
     dz_flat = float(st.qpos[2, 2]) - flat[2]
-    print("DZ", dz_plateau, dz_flat)
     assert abs(dz_plateau - dz_flat) < 5e-3, (dz_plateau, dz_flat)
