@@ -191,3 +191,20 @@ def hfield_obs(H: np.ndarray, walls: bool, x: float, y: float, x_dir: np.ndarray
         row, col = np.around(yr).astype(int), np.around(xr).astype(int)
     r, c = torso_idx(H, walls, x, y)
     return (H[row + r, col + c] - H[r, c]).flatten()
+
+
+def available_robots():
+    """The shipped generated robots, else the original train robots; skips the test when neither is there."""
+    import pytest
+
+    from mjx_morph.unimal.sets import load_set, unimals_root
+    try:
+        rs = load_set("gen/train").robots
+    except Exception:
+        rs = ()
+    if not rs:
+        if unimals_root() is None:
+            pytest.skip("no robots available: neither assets/gen/train nor ../shared/unimals_100 "
+                        "(set MJX_MORPH_UNIMALS)")
+        rs = load_set("unimal100/train").robots
+    return rs

@@ -18,7 +18,7 @@ from mjx_morph.sim import fidelity, sampling, terrain
 from mjx_morph.sim.env import make_env
 from mjx_morph.sim.padding import SolverOptions
 from mjx_morph.sim.tasks import TASKS
-from mjx_morph.unimal.sets import load_set, unimals_root
+from sim_reference import available_robots
 
 EPISODE = 5
 N = 3
@@ -26,15 +26,7 @@ FAST = {"xla_backend_optimization_level": 0, "xla_llvm_disable_expensive_passes"
 
 
 def _two_robots():
-    try:
-        rs = load_set("gen/train").robots
-    except Exception:
-        rs = ()
-    if not rs:
-        if unimals_root() is None:
-            pytest.skip("no robots available: neither assets/gen/train nor ../shared/unimals_100 "
-                        "(set MJX_MORPH_UNIMALS)")
-        rs = load_set("unimal100/train").robots
+    rs = available_robots()
     tall = [m for m in rs if m.height >= 0.7]
     a = tall[0]
     b = next(m for m in tall if m.num_limbs != a.num_limbs)

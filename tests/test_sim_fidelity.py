@@ -9,19 +9,11 @@ import pytest
 
 from mjx_morph.sim import cpu_linalg, fidelity, terrain
 from mjx_morph.sim.padding import SolverOptions
-from mjx_morph.unimal.sets import load_set, unimals_root
+from sim_reference import available_robots
 
 
 def _robots(n: int):
-    try:
-        rs = load_set("gen/train").robots
-    except Exception:
-        rs = ()
-    if not rs:
-        if unimals_root() is None:
-            pytest.skip("no robots available: neither assets/gen/train nor ../shared/unimals_100 "
-                        "(set MJX_MORPH_UNIMALS)")
-        rs = load_set("unimal100/train").robots
+    rs = available_robots()
     out = []
     for m in rs:
         if not out or m.num_limbs != out[-1].num_limbs:

@@ -11,20 +11,13 @@ import mujoco
 from mjx_morph.sim import fidelity, padding, sampling, supertree
 from mjx_morph.sim.model import build_stacked_model, INERT_MARGIN
 from mjx_morph.sim.padding import SolverOptions, WorldSpec
+from sim_reference import available_robots
 from mjx_morph.unimal.sets import load_set, unimals_root
 
 
 def _robots(n: int):
     """n robots of different shapes: the shipped generated set when present, else the original train robots."""
-    try:
-        rs = load_set("gen/train").robots
-    except Exception:
-        rs = ()
-    if not rs:
-        if unimals_root() is None:
-            pytest.skip("no robots available: neither assets/gen/train nor ../shared/unimals_100 "
-                        "(set MJX_MORPH_UNIMALS)")
-        rs = load_set("unimal100/train").robots
+    rs = available_robots()
     out, shapes = [], set()
     for m in rs:
         shape = supertree._robot_shape(m)
