@@ -15,3 +15,25 @@ def unimals():
     if root is None:
         pytest.skip(NO_UNIMALS)
     return root
+
+
+ROOT = __import__("pathlib").Path(__file__).resolve().parents[1]
+
+
+def smoke_config(*overrides: str):
+    """The smoke training config (2 generated robots, tiny networks, 3 iterations) with extra overrides."""
+    from hydra import compose, initialize_config_dir
+    with initialize_config_dir(config_dir=str(ROOT / "experiments" / "conf"), version_base=None):
+        return compose(config_name="config", overrides=["preset=smoke", "robots=gen/train", "progress=false",
+                                                        *overrides])
+
+
+@pytest.fixture(scope="session")
+def smoke_run(tmp_path_factory):
+    """One finished smoke run of rmomo, shared by the training, evaluation, report and render tests (its compiled
+    train step is cached per process, so other smoke runs of the same config compile nothing)."""
+    from mjx_morph.ppo.loop import train
+    d = tmp_path_factory.mktemp("runs") / "smoke-rmomo"
+    cfg = smoke_config(f"run_dir={d}")
+    train(cfg)
+    return d, cfg

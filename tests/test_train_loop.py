@@ -11,7 +11,6 @@ from pathlib import Path
 import jax
 import numpy as np
 import pytest
-from hydra import compose, initialize_config_dir
 
 from mjx_morph.ppo.loop import build, train
 from mjx_morph.ppo.run_dir import RunDir, RunDirError
@@ -20,10 +19,7 @@ ROOT = Path(__file__).resolve().parents[1]
 CONF = ROOT / "experiments" / "conf"
 
 
-def config(*overrides: str):
-    with initialize_config_dir(config_dir=str(CONF), version_base=None):
-        return compose(config_name="config", overrides=["preset=smoke", "robots=gen/train", "progress=false",
-                                                        *overrides])
+from conftest import smoke_config as config
 
 
 def params_of(run_dir: Path, cfg):
@@ -37,11 +33,8 @@ def params_of(run_dir: Path, cfg):
 
 
 @pytest.fixture(scope="module")
-def full_run(tmp_path_factory):
-    d = tmp_path_factory.mktemp("runs") / "full"
-    cfg = config(f"run_dir={d}")
-    train(cfg)
-    return d, cfg
+def full_run(smoke_run):
+    return smoke_run
 
 
 def test_smoke_run_writes_everything(full_run):

@@ -19,13 +19,15 @@ import jax
 
 from ..eval.plots import learning_curve
 from ..nets import model_from_config
+from ..nets.context import mask_context
 from ..sim.env import EnvConfig, make_env
 from ..unimal.sets import default_train_set, load_set
 from .run_dir import RunDir
 from .trainer import PPOConfig, Trainer
 
 #: config keys that shape the train state: a resume must agree on them
-IDENTITY = ("env", "arch", "robots", "robots_root", "num_robots", "seed", "model_overrides", "ppo.num_envs",
+IDENTITY = ("env", "arch", "robots", "robots_root", "num_robots", "seed", "model_overrides", "context_features",
+            "ppo.num_envs",
             "ppo.rollout_len", "ppo.window", "ppo.burn_in", "ppo.minibatch_size", "ppo.sampling")
 
 
@@ -44,7 +46,8 @@ def build(cfg: dict):
     the compiled programs, so a resumed run in the same process (tests, notebooks) reuses the compilation."""
     import json
     key = json.dumps({k: cfg.get(k) for k in ("env", "arch", "robots", "robots_root", "num_robots",
-                                               "model_overrides", "ppo", "total_steps", "fast_compile")},
+                                               "model_overrides", "context_features", "ppo", "total_steps",
+                                               "fast_compile")},
                      sort_keys=True, default=str)
     if key not in _BUILT:
         _BUILT[key] = _build(cfg)
@@ -55,7 +58,7 @@ def _build(cfg: dict):
     robots = cfg.get("robots") or default_train_set(cfg.get("robots_root"))
     rs = load_set(robots, cfg.get("robots_root"))
     chosen = rs.robots[: cfg["num_robots"]] if cfg.get("num_robots") else rs.robots
-    env = make_env(list(chosen), config=EnvConfig.from_cfg(cfg["env"]))
+    env = make_run_env(cfg, chosen)
     model = model_from_config(_Attr(cfg["arch"]), _Attr(cfg["env"]), **(cfg.get("model_overrides") or {}))
     fields = {f.name for f in dataclasses.fields(PPOConfig)}
     unknown = set(cfg["ppo"]) - fields
@@ -63,6 +66,15 @@ def _build(cfg: dict):
         raise ValueError(f"unknown ppo option(s) {sorted(unknown)}; known: {sorted(fields)}")
     ppo = PPOConfig(**{**cfg["ppo"], "total_steps": int(cfg["total_steps"])})
     return env, model, Trainer(env, model, ppo, fast_compile=bool(cfg.get("fast_compile", False))), robots
+
+
+def make_run_env(cfg: dict, robots, **env_overrides):
+    """The env of a run's config for `robots` (training or evaluation): the run's task and simulator options
+    (`env_overrides` replace EnvConfig fields, e.g. episode_length) and its context-feature mask."""
+    config = dataclasses.replace(EnvConfig.from_cfg(cfg["env"]), **env_overrides)
+    env = make_env(list(robots), config=config)
+    env.robots = mask_context(env.robots, cfg.get("context_features"))
+    return env
 
 
 class _Attr(dict):
@@ -96,9 +108,19 @@ def train(cfg: Any) -> Path:
     every = max(1, int(cfg.get("checkpoint_every", 50)))
     # stop_after: end this invocation after that many iterations (with a checkpoint), as if interrupted
     stop = min(num_iters, start + int(cfg["stop_after"])) if cfg.get("stop_after") else num_iters
+    # time_limit_min: end this invocation (with a checkpoint) once the next iteration would not fit in that time
+    deadline = time.perf_counter() + 60.0 * float(cfg["time_limit_min"]) if cfg.get("time_limit_min") else None
     it = start
+    slowest, timed_out = 0.0, False
     try:
         while it < stop:
+            if deadline is not None and it > start and time.perf_counter() + 1.5 * slowest > deadline:
+                timed_out = True
+                if run.latest_step() != it:
+                    run.save(it, ts)
+                print(f"\n[mjx_morph] time limit reached at iteration {it}; checkpoint saved. "
+                      f"Rerun the same command to resume.", file=sys.stderr, flush=True)
+                break
             t0 = time.perf_counter()
             if cfg.get("phase_timing", True):
                 ts, batch, m1 = trainer.rollout(ts)
@@ -115,6 +137,8 @@ def train(cfg: Any) -> Path:
                 t2 = time.perf_counter()
                 phases = {"rollout_sps": float("nan"), "update_sps": float("nan")}
             it = int(ts.iteration)
+            if it > start + 1:             # the first iteration of an invocation includes compilation
+                slowest = max(slowest, t2 - t0)
             row = {"iteration": it, "env_steps": it * pc.steps_per_iter,
                    **{k: float(v) for k, v in jax.device_get(metrics).items()},
                    "sps": pc.steps_per_iter / (t2 - t0), **phases, "wall_s": t2 - t0}
@@ -124,6 +148,8 @@ def train(cfg: Any) -> Path:
                 bar.update(1)
             if it % every == 0 or it == stop:
                 run.save(it, ts)
+        if timed_out:
+            return run.path
     except KeyboardInterrupt:
         if int(ts.iteration) > (run.latest_step() or 0):
             run.save(int(ts.iteration), ts)
@@ -144,16 +170,27 @@ def train(cfg: Any) -> Path:
     return run.path
 
 
-def final_params(run_dir: str | Path):
-    """Convenience for evaluation: (cfg, trainer, train state) restored from a run directory's newest checkpoint."""
+def load_run(run_dir: str | Path, step: int | None = None):
+    """(cfg, env, model, trainer, train state, step) of a run directory's checkpoint `step` (default: newest).
+
+    Restores into the abstract train state (`jax.eval_shape` of init): nothing is compiled or run for the
+    training batch, so loading a run for evaluation costs only building its robot set and reading the arrays."""
     import yaml
     run_dir = Path(run_dir)
-    cfg = yaml.safe_load((run_dir / "config.yaml").read_text())
+    cfg_file = run_dir / "config.yaml"
+    if not cfg_file.exists():
+        raise FileNotFoundError(f"{run_dir}: not a run directory (no config.yaml)")
+    cfg = yaml.safe_load(cfg_file.read_text())
     run = RunDir(run_dir, cfg, IDENTITY)
-    _, _, trainer, _ = build(cfg)
-    ts = trainer.init(jax.random.PRNGKey(int(cfg["seed"])))
-    step = run.latest_step()
+    env, model, trainer, _ = build(cfg)
+    steps = run.manager.all_steps() if (run_dir / "checkpoints").exists() else []
+    if not steps:
+        raise FileNotFoundError(f"{run_dir / 'checkpoints'}: no checkpoint yet")
     if step is None:
-        raise FileNotFoundError(f"{run_dir}: no checkpoint yet")
-    return cfg, trainer, run.restore(step, ts)
-
+        step = max(steps)
+    elif step not in steps:
+        raise FileNotFoundError(f"{run_dir / 'checkpoints'}: no checkpoint {step}; have {sorted(steps)}")
+    like = jax.eval_shape(trainer._init_state, jax.random.PRNGKey(int(cfg["seed"])))
+    ts = run.restore(step, like)
+    run.close()
+    return cfg, env, model, trainer, ts, step

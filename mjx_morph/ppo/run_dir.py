@@ -93,12 +93,13 @@ class RunDir:
         self.manager.wait_until_finished()
 
     def restore(self, step: int, like):
-        """Restore checkpoint `step` into the structure of `like` (an initial train state)."""
+        """Restore checkpoint `step` into the structure of `like` (an initial train state, or its
+        `jax.eval_shape`)."""
         import jax
         import orbax.checkpoint as ocp
         where = self.path / "checkpoints" / str(step)
         leaves, treedef = jax.tree_util.tree_flatten(like)
-        abstract = {f"leaf{i:05d}": ocp.utils.to_shape_dtype_struct(x) for i, x in enumerate(leaves) if x.size}
+        abstract = {f"leaf{i:05d}": jax.ShapeDtypeStruct(x.shape, x.dtype) for i, x in enumerate(leaves) if x.size}
         try:
             got = self.manager.restore(step, args=ocp.args.StandardRestore(abstract))
             if set(got) != set(abstract):
@@ -114,7 +115,7 @@ class RunDir:
         # (Orbax returns committed arrays, which would make every jitted train function compile again)
         import numpy as np
         return jax.tree_util.tree_unflatten(
-            treedef, [jax.numpy.asarray(np.asarray(got[f"leaf{i:05d}"])) if x.size else x
+            treedef, [jax.numpy.asarray(np.asarray(got[f"leaf{i:05d}"])) if x.size else jax.numpy.zeros(x.shape, x.dtype)
                       for i, x in enumerate(leaves)])
 
     # ---- metrics -------------------------------------------------------------------------------------------

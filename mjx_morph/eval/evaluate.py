@@ -1,0 +1,196 @@
+"""Evaluate a trained run on robot sets and write per-robot results into its run directory.
+
+    evaluate_run("runs/ft-rmomo-s0", sets=("train", "test", "variants"), episodes=4)
+
+writes, per set, `<run_dir>/eval/<tag>.csv` (one row per episode) and `<run_dir>/eval/<tag>.json` (summary: mean
+return and normalised return with 95% confidence intervals over robots, per-robot means, per change type for
+variants, fall/timeout/instability counts, the reward per timestep of the first steps, and the same with the
+recurrent state held at zero for the first `zero_state_steps` steps for recurrent models).
+
+Set names: `train` (the robots the run trained on, `num_robots` included), `test` and `val` (the held-out robots
+of the run's robot family: `unimal100/test70` / `unimal100/val` for the original robots, `gen/test` for the
+generated ones), `variants` (the 24 dynamics/kinematics variants of each train robot, one sweep per change type;
+`variants/<change>`: one change type),
+or any set name or path that `load_set` knows (tag: the name with "/" replaced by "_"); `<tag>:<set>` evaluates
+a set under another label (e.g. `test:path/to/robots`, so that reports treat it as the test set).
+
+Normalised return (the paper's per-task range over robots): (R - min) / (max - min) with ft 52/5008, incline
+-74/3751, csr 71/3000, obstacle 126/2403.
+"""
+from __future__ import annotations
+
+import csv
+import dataclasses
+import json
+import time
+from pathlib import Path
+from typing import Callable, Iterable, Sequence
+
+import numpy as np
+
+from ..unimal.morphology import Morphology
+from ..unimal.sets import default_train_set, load_set
+from ..unimal.variants import CHANGE_TYPES, variant_change
+from .sweep import Sweeper, SweepResult
+
+TASK_RANGES = {"ft": (52.0, 5008.0), "incline": (-74.0, 3751.0), "csr": (71.0, 3000.0), "obstacle": (126.0, 2403.0)}
+SHORTCUTS = ("train", "val", "test", "variants")
+
+
+def normalised(ret, task: str):
+    lo, hi = TASK_RANGES[task]
+    return (np.asarray(ret, np.float64) - lo) / (hi - lo)
+
+
+def ci95(x: Sequence[float]) -> float:
+    """Half-width of the 95% confidence interval of the mean (Student t); nan for fewer than 2 values."""
+    from scipy import stats
+    x = np.asarray(x, np.float64)
+    if x.size < 2:
+        return float("nan")
+    return float(stats.t.ppf(0.975, x.size - 1) * x.std(ddof=1) / np.sqrt(x.size))
+
+
+@dataclasses.dataclass
+class EvalSet:
+    tag: str                                  # file stem under <run_dir>/eval
+    name: str                                 # robot set name
+    robots: tuple[Morphology, ...]
+    groups: dict[str, list[int]] | None = None  # variants: change type -> robot indices
+
+
+def train_robots(cfg: dict) -> tuple[str, tuple[Morphology, ...]]:
+    name = cfg.get("robots") or default_train_set(cfg.get("robots_root"))
+    robots = load_set(name, cfg.get("robots_root")).robots
+    return name, tuple(robots[: cfg["num_robots"]] if cfg.get("num_robots") else robots)
+
+
+def resolve_set(cfg: dict, name: str) -> EvalSet:
+    """A set name of `experiments.evaluate` (a shortcut or any `load_set` name) -> the robots to evaluate."""
+    if ":" in name:                                   # "<tag>:<set>": a set evaluated under another label
+        tag, _, inner = name.partition(":")
+        return dataclasses.replace(resolve_set(cfg, inner), tag=tag)
+    root = cfg.get("robots_root")
+    train_name, trained = train_robots(cfg)
+    family = train_name.split("/")[0] if train_name.split("/")[0] in ("unimal100", "gen") else None
+    if name == "train":
+        return EvalSet("train", train_name, trained)
+    if name in ("test", "val"):
+        if family == "unimal100":
+            full = "unimal100/test70" if name == "test" else "unimal100/val"
+        elif family == "gen" and name == "test":
+            full = "gen/test"
+        else:
+            raise ValueError(f"robots={name}: the run trained on {train_name!r}, which has no {name} set; "
+                             f"name one explicitly (e.g. robots=[unimal100/test70])")
+        return EvalSet(name, full, load_set(full, root).robots)
+    head, _, change = name.partition("/variants")
+    if name.startswith("variants") or "/variants" in name:
+        if name.startswith("variants"):                  # variants[/<change>] of the robots the run trained on
+            base_name, change, keep = train_name, name[len("variants"):], {m.name for m in trained}
+        else:                                            # <set>/variants[/<change>]: of a whole set
+            base_name, keep = head, None
+        change = change.strip("/")
+        full = f"{base_name}/variants" + (f"/{change}" if change else "")
+        robots = [m for m in load_set(full, root).robots if keep is None or variant_change(m.name)[0] in keep]
+        groups = {c: [i for i, m in enumerate(robots) if variant_change(m.name)[1] == c] for c in CHANGE_TYPES}
+        return EvalSet(name.replace("/", "_"), full, tuple(robots), {c: g for c, g in groups.items() if g})
+    rs = load_set(name, root)
+    return EvalSet(name.replace("/", "_"), name, rs.robots)
+
+
+def _summary(res: SweepResult, robot_of: np.ndarray, names: list[str], task: str) -> dict:
+    per_robot = {}
+    for i, nm in enumerate(names):
+        sel = robot_of == i
+        if sel.any():
+            per_robot[nm] = float(res.ret[sel].mean())
+    means = np.array(list(per_robot.values()))
+    norm = normalised(means, task)
+    return {"robots": len(per_robot), "episodes_total": int(res.ret.size),
+            "mean_return": float(means.mean()), "ci95_return": ci95(means),
+            "mean_normalised": float(norm.mean()), "ci95_normalised": ci95(norm),
+            "mean_length": float(res.length.mean()), "fall_fraction": float(res.fell.mean()),
+            "out_of_bounds_fraction": float(res.out_of_bounds.mean()), "timeout_fraction": float(res.timeout.mean()),
+            "instabilities": int(res.unstable.sum())}
+
+
+def _concat(results: list[SweepResult]) -> SweepResult:
+    return SweepResult(*[np.concatenate(xs, axis=-1) for xs in zip(*results)])
+
+
+def evaluate_run(run_dir: str | Path, sets: Iterable[str] = ("train", "test", "variants"), episodes: int = 4,
+                 seed: int = 0, zero_state_steps: int = 100, step: int | None = None, max_envs: int | None = None,
+                 episode_length: int | None = None, trace_steps: int = 500,
+                 log: Callable[[str], None] = print) -> dict[str, dict]:
+    """Evaluate the run's checkpoint `step` (default: newest) on each set; returns {tag: summary} and writes the
+    files described in the module docstring."""
+    from ..ppo.loop import load_run, make_run_env
+    from ..ppo.trainer import FAST_COMPILE
+    run_dir = Path(run_dir)
+    cfg, _, model, trainer, ts, step = load_run(run_dir, step)
+    task = cfg["env"]["name"]
+    env_over = {"episode_length": int(episode_length)} if episode_length else {}
+    out_dir = run_dir / "eval"
+    out_dir.mkdir(exist_ok=True)
+    options = FAST_COMPILE if cfg.get("fast_compile") else None
+    env_steps = step * trainer.cfg.steps_per_iter
+    summaries = {}
+    for name in sets:
+        t0 = time.perf_counter()
+        es = resolve_set(cfg, name)
+        env = make_run_env(cfg, es.robots, **env_over)
+        sweeper = Sweeper(env, model, trace_steps, compiler_options=options)
+        groups = es.groups or {None: list(range(len(es.robots)))}
+        chunk = max_envs or max(len(g) for g in groups.values()) * episodes   # one compiled size for all groups
+        results, robot_of, summary = [], [], {}
+        for change, idx in groups.items():
+            r = np.repeat(np.asarray(idx, np.int32), episodes)
+            e = np.tile(np.arange(episodes, dtype=np.int32), len(idx))
+            res = sweeper(ts.params, ts.obs_rms, r, e, seed=seed, max_envs=chunk)
+            results.append(res)
+            robot_of.append(r)
+            if change is not None:
+                summary.setdefault("per_change", {})[change] = _summary(res, r, [m.name for m in es.robots], task)
+        res, robot_of = _concat(results), np.concatenate(robot_of)
+        names = [m.name for m in es.robots]
+        summary = {"run_dir": str(run_dir), "arch": model.arch, "task": task, "set": es.name, "tag": es.tag,
+                   "checkpoint": step, "env_steps": env_steps, "episodes": episodes, "seed": seed,
+                   "episode_length": env.config.episode_length,
+                   **_summary(res, robot_of, names, task), **summary}
+        summary["per_robot"] = {nm: float(res.ret[robot_of == i].mean()) for i, nm in enumerate(names)}
+        summary["reward_trace"] = res.reward.mean(axis=1).tolist()
+        summary["alive_trace"] = (np.arange(res.reward.shape[0])[:, None] < res.length[None, :]).mean(axis=1).tolist()
+        if es.groups is None and model.recurrent and zero_state_steps > 0:
+            z = sweeper(ts.params, ts.obs_rms, robot_of, np.tile(np.arange(episodes), len(names)), seed=seed,
+                        zero_state_steps=zero_state_steps, max_envs=chunk)
+            summary["zero_state_steps"] = int(zero_state_steps)
+            summary["reward_trace_zero_state"] = z.reward.mean(axis=1).tolist()
+            summary["mean_return_zero_state"] = float(z.ret.mean())
+        _write(out_dir, es, res, robot_of, summary, task)
+        summaries[es.tag] = summary
+        extra = "".join(f"; {c} {s['mean_return']:.1f}" for c, s in summary.get("per_change", {}).items())
+        log(f"[mjx_morph] {es.tag} ({es.name}, {len(names)} robots x {episodes} episodes): mean return "
+            f"{summary['mean_return']:.1f} ± {summary['ci95_return']:.1f}, normalised {summary['mean_normalised']:.3f}"
+            f"{extra} ({time.perf_counter() - t0:.0f} s)")
+    return summaries
+
+
+def _write(out_dir: Path, es: EvalSet, res: SweepResult, robot_of: np.ndarray, summary: dict, task: str) -> None:
+    episode_no = np.zeros_like(robot_of)
+    seen: dict[int, int] = {}
+    for i, r in enumerate(robot_of):
+        episode_no[i] = seen.get(int(r), 0)
+        seen[int(r)] = episode_no[i] + 1
+    norm = normalised(res.ret, task)
+    with (out_dir / f"{es.tag}.csv").open("w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["robot", "base", "change", "episode", "return", "normalised", "length", "fell", "out_of_bounds",
+                    "timeout", "unstable"])
+        for i, r in enumerate(robot_of):
+            name = es.robots[int(r)].name
+            base, change = (variant_change(name)[:2] if es.groups else (name, ""))
+            w.writerow([name, base, change, int(episode_no[i]), f"{res.ret[i]:.4f}", f"{norm[i]:.5f}",
+                        int(res.length[i]), int(res.fell[i]), int(res.out_of_bounds[i]), int(res.timeout[i]),
+                        int(res.unstable[i])])
+    (out_dir / f"{es.tag}.json").write_text(json.dumps(summary, indent=1))

@@ -1,0 +1,135 @@
+"""Evaluation sweeps on the shared smoke run: a batched sweep equals stepping each robot alone by hand; variants are
+grouped by change type and counted; the files of `evaluate_run` agree with each other; the CLI reports bad input."""
+from __future__ import annotations
+
+import csv
+import json
+import os
+import subprocess
+import sys
+from functools import partial
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from mjx_morph.eval.evaluate import TASK_RANGES, evaluate_run, normalised, resolve_set
+from mjx_morph.eval.sweep import Sweeper, episode_keys
+from mjx_morph.nets.model import Obs
+from mjx_morph.ppo.loop import load_run, make_run_env
+from mjx_morph.ppo.trainer import FAST_COMPILE
+from mjx_morph.unimal.variants import CHANGE_TYPES, variant_change
+
+ROOT = Path(__file__).resolve().parents[1]
+STEPS = 30
+
+
+@pytest.fixture(scope="module")
+def loaded(smoke_run):
+    cfg, env, model, _, ts, _ = load_run(smoke_run[0])
+    short = make_run_env(cfg, env.morphologies, episode_length=STEPS)
+    return cfg, short, model, ts
+
+
+def test_sweep_equals_stepping_each_robot_alone(loaded):
+    cfg, env, model, ts = loaded
+    sweeper = Sweeper(env, model, trace_steps=STEPS, compiler_options=FAST_COMPILE)
+    robots, episodes = np.array([1, 0, 1, 0]), np.array([0, 0, 1, 1])
+    res = sweeper(ts.params, ts.obs_rms, robots, episodes, seed=3)
+    assert res.reward.shape == (STEPS, 4)
+    np.testing.assert_allclose(res.reward.sum(axis=0), res.ret, rtol=1e-5, atol=1e-5)
+    assert not np.allclose(res.ret[0], res.ret[2])          # another episode key: another episode
+
+    @partial(jax.jit, compiler_options=FAST_COMPILE)
+    def act(state, carry, first):
+        p = state.obs.proprio[None]
+        obs = Obs(ts.obs_rms.normalize(p.reshape(1, -1)).reshape(p.shape), state.obs.prev_action[None],
+                  state.obs.robot[None], state.obs.hfield[None])
+        mu, _, carry = model.step(ts.params, env.robots, obs, carry, jnp.asarray([first]))
+        return env.step(state, mu[0]), carry
+
+    reset = jax.jit(env.reset, compiler_options=FAST_COMPILE)
+    for i, (r, e) in enumerate(zip(robots, episodes)):
+        key = episode_keys(3, env, jnp.asarray([r]), jnp.asarray([e]))[0]
+        state, carry, ret, t = reset(key, jnp.int32(r)), model.initial_carry(1), 0.0, 0
+        while True:
+            state, carry = act(state, carry, t == 0)
+            ret, t = ret + float(state.reward), t + 1
+            if bool(state.done):
+                break
+        assert t == res.length[i], (i, t, res.length[i])
+        np.testing.assert_allclose(ret, res.ret[i], rtol=1e-3, atol=1e-3)   # float32 physics, another program
+
+
+def test_evaluate_run_groups_variants_and_writes_consistent_files(smoke_run):
+    d = smoke_run[0]
+    out = evaluate_run(d, ["train", "variants"], episodes=2, seed=0, zero_state_steps=10, episode_length=STEPS,
+                       trace_steps=STEPS, log=lambda s: None)
+    assert set(out) == {"train", "variants"}
+    # variants: 2 robots x 6 change types x 4, one sweep per change type, counted per type
+    v = json.loads((d / "eval" / "variants.json").read_text())
+    assert v["robots"] == 48 and v["episodes_total"] == 96 and set(v["per_change"]) == set(CHANGE_TYPES)
+    assert all(s["robots"] == 8 for s in v["per_change"].values())
+    with (d / "eval" / "variants.csv").open() as fh:
+        rows = list(csv.DictReader(fh))
+    assert len(rows) == 96
+    for c in CHANGE_TYPES:
+        mine = [r for r in rows if r["change"] == c]
+        assert len(mine) == 16 and all(r["robot"] == f"{r['base']}_{c}_{r['robot'][-1]}" for r in mine)
+        np.testing.assert_allclose(np.mean([float(r["return"]) for r in mine]), v["per_change"][c]["mean_return"],
+                                   rtol=1e-4)
+    assert {r["base"] for r in rows} == {m for m in json.loads((d / "eval" / "train.json").read_text())["per_robot"]}
+    # train: per-robot means, normalisation and the reward trace agree with the per-episode rows
+    t = json.loads((d / "eval" / "train.json").read_text())
+    with (d / "eval" / "train.csv").open() as fh:
+        trows = list(csv.DictReader(fh))
+    assert len(trows) == 4 and t["episodes"] == 2 and t["arch"] == "rmomo" and t["task"] == "ft"
+    rets = np.array([float(r["return"]) for r in trows])
+    np.testing.assert_allclose(np.array(t["reward_trace"]).sum() * 4, rets.sum(), rtol=1e-4, atol=1e-4)
+    np.testing.assert_allclose([float(r["normalised"]) for r in trows], normalised(rets, "ft"), atol=1e-4)
+    assert t["mean_normalised"] == pytest.approx((t["mean_return"] - TASK_RANGES["ft"][0]) / 4956, abs=1e-6)
+    # the recurrent state held at zero for 10 steps changes the later rewards, not the first
+    z = np.array(t["reward_trace_zero_state"])
+    assert z[0] == pytest.approx(t["reward_trace"][0]) and not np.allclose(z[1:], t["reward_trace"][1:])
+
+
+def test_set_names_labels_and_keys_by_robot_name(loaded):
+    cfg, env, model, ts = loaded
+    es = resolve_set(cfg, "heldout:variants/gear")
+    assert es.tag == "heldout" and es.name == "gen/train/variants/gear" and len(es.robots) == 8
+    assert es.groups == {"gear": list(range(8))}
+    assert {variant_change(m.name)[0] for m in es.robots} == {m.name for m in env.morphologies}
+    with pytest.raises(ValueError, match="has no val set"):
+        resolve_set(cfg, "val")
+    # an episode's key depends on the robot's name, not on its index in the set
+    swapped = make_run_env(cfg, env.morphologies[::-1], episode_length=STEPS)
+    a = episode_keys(0, env, jnp.asarray([0, 1]), jnp.asarray([2, 2]))
+    b = episode_keys(0, swapped, jnp.asarray([1, 0]), jnp.asarray([2, 2]))
+    np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    assert not np.array_equal(np.asarray(a[0]), np.asarray(a[1]))
+
+
+def test_evaluate_cli_reports_bad_input(tmp_path):
+    env = {**os.environ, "HYDRA_FULL_ERROR": "0"}
+    out = subprocess.run([sys.executable, "-m", "experiments.evaluate", f"run_dir={tmp_path}"], cwd=ROOT,
+                         capture_output=True, text=True, timeout=300, env=env)
+    assert out.returncode == 2 and "not a run directory (no config.yaml)" in out.stderr
+
+
+def test_context_feature_runs_see_only_their_feature():
+    from conftest import smoke_config
+    from omegaconf import OmegaConf
+
+    from mjx_morph.nets.context import CONTEXT_GROUPS, context_mask
+    from mjx_morph.ppo.loop import build
+    cfg = OmegaConf.to_container(smoke_config("context_features=[gear]"), resolve=True)
+    env = build(cfg)[0]
+    ctx = np.asarray(env.robots.context)
+    keep = np.zeros(35, bool)
+    keep[list(CONTEXT_GROUPS["gear"])] = True
+    assert np.all(ctx[..., ~keep] == 0) and np.any(ctx[..., keep] != 0)
+    assert sorted(i for c in CONTEXT_GROUPS.values() for i in c) == list(range(35))
+    with pytest.raises(ValueError, match="unknown feature"):
+        context_mask(["mass"])
