@@ -37,3 +37,28 @@ def smoke_run(tmp_path_factory):
     cfg = smoke_config(f"run_dir={d}")
     train(cfg)
     return d, cfg
+
+
+@pytest.fixture(scope="session")
+def smoke_run_ff(tmp_path_factory):
+    """The same smoke run for the feed-forward MetaMorph."""
+    from mjx_morph.ppo.loop import train
+    d = tmp_path_factory.mktemp("runs") / "smoke-metamorph"
+    cfg = smoke_config(f"run_dir={d}", "arch=metamorph")
+    train(cfg)
+    return d, cfg
+
+
+EVAL_STEPS = 30   # episode length of the evaluations in the tests
+
+
+@pytest.fixture(scope="session")
+def evaluated_runs(smoke_run, smoke_run_ff):
+    """Both smoke runs evaluated on short episodes: rmomo on train, its variants and (labelled) test = the train
+    robots again; metamorph on train and test. Shared by the evaluation and report tests."""
+    from mjx_morph.eval.evaluate import evaluate_run
+    kw = dict(episodes=2, seed=0, zero_state_steps=10, episode_length=EVAL_STEPS, trace_steps=EVAL_STEPS,
+              log=lambda s: None)
+    evaluate_run(smoke_run[0], ["train", "variants", "test:train"], **kw)
+    evaluate_run(smoke_run_ff[0], ["train", "test:train"], **kw)
+    return smoke_run[0], smoke_run_ff[0]

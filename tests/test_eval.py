@@ -23,7 +23,7 @@ from mjx_morph.ppo.trainer import FAST_COMPILE
 from mjx_morph.unimal.variants import CHANGE_TYPES, variant_change
 
 ROOT = Path(__file__).resolve().parents[1]
-STEPS = 30
+from conftest import EVAL_STEPS as STEPS
 
 
 @pytest.fixture(scope="module")
@@ -63,11 +63,10 @@ def test_sweep_equals_stepping_each_robot_alone(loaded):
         np.testing.assert_allclose(ret, res.ret[i], rtol=1e-3, atol=1e-3)   # float32 physics, another program
 
 
-def test_evaluate_run_groups_variants_and_writes_consistent_files(smoke_run):
-    d = smoke_run[0]
-    out = evaluate_run(d, ["train", "variants"], episodes=2, seed=0, zero_state_steps=10, episode_length=STEPS,
-                       trace_steps=STEPS, log=lambda s: None)
-    assert set(out) == {"train", "variants"}
+def test_evaluate_run_groups_variants_and_writes_consistent_files(evaluated_runs):
+    d = evaluated_runs[0]
+    assert {p.name for p in (d / "eval").iterdir()} == {f"{t}.{x}" for t in ("train", "variants", "test")
+                                                         for x in ("csv", "json")}
     # variants: 2 robots x 6 change types x 4, one sweep per change type, counted per type
     v = json.loads((d / "eval" / "variants.json").read_text())
     assert v["robots"] == 48 and v["episodes_total"] == 96 and set(v["per_change"]) == set(CHANGE_TYPES)
@@ -81,6 +80,9 @@ def test_evaluate_run_groups_variants_and_writes_consistent_files(smoke_run):
         np.testing.assert_allclose(np.mean([float(r["return"]) for r in mine]), v["per_change"][c]["mean_return"],
                                    rtol=1e-4)
     assert {r["base"] for r in rows} == {m for m in json.loads((d / "eval" / "train.json").read_text())["per_robot"]}
+    # the labelled set is the train robots again: same keys, same returns
+    te = json.loads((d / "eval" / "test.json").read_text())
+    assert te["tag"] == "test" and te["per_robot"] == json.loads((d / "eval" / "train.json").read_text())["per_robot"]
     # train: per-robot means, normalisation and the reward trace agree with the per-episode rows
     t = json.loads((d / "eval" / "train.json").read_text())
     with (d / "eval" / "train.csv").open() as fh:

@@ -86,9 +86,8 @@ def test_corrupt_checkpoint_gives_clear_error_and_changes_nothing(full_run, tmp_
     assert _listing(d) == before
 
 
-def test_feed_forward_smoke_run(tmp_path):
-    train(config(f"run_dir={tmp_path / 'mm'}", "arch=metamorph"))
-    rows = RunDir(tmp_path / "mm", {}, ()).read_metrics()
+def test_feed_forward_smoke_run(smoke_run_ff):
+    rows = RunDir(smoke_run_ff[0], {}, ()).read_metrics()
     assert len(rows) == 3 and all(abs(r["first_ratio"] - 1) < 1e-4 for r in rows)
 
 

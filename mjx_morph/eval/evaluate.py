@@ -135,12 +135,16 @@ def evaluate_run(run_dir: str | Path, sets: Iterable[str] = ("train", "test", "v
     out_dir.mkdir(exist_ok=True)
     options = FAST_COMPILE if cfg.get("fast_compile") else None
     env_steps = step * trainer.cfg.steps_per_iter
-    summaries = {}
+    summaries, sweepers = {}, {}
     for name in sets:
         t0 = time.perf_counter()
         es = resolve_set(cfg, name)
-        env = make_run_env(cfg, es.robots, **env_over)
-        sweeper = Sweeper(env, model, trace_steps, compiler_options=options)
+        names = tuple(m.name for m in es.robots)
+        if names not in sweepers:              # the same robots under another label: no new env, no recompilation
+            sweepers[names] = Sweeper(make_run_env(cfg, es.robots, **env_over), model, trace_steps,
+                                      compiler_options=options)
+        sweeper = sweepers[names]
+        env = sweeper.env
         groups = es.groups or {None: list(range(len(es.robots)))}
         chunk = max_envs or max(len(g) for g in groups.values()) * episodes   # one compiled size for all groups
         results, robot_of, summary = [], [], {}
@@ -153,7 +157,7 @@ def evaluate_run(run_dir: str | Path, sets: Iterable[str] = ("train", "test", "v
             if change is not None:
                 summary.setdefault("per_change", {})[change] = _summary(res, r, [m.name for m in es.robots], task)
         res, robot_of = _concat(results), np.concatenate(robot_of)
-        names = [m.name for m in es.robots]
+        names = list(names)
         summary = {"run_dir": str(run_dir), "arch": model.arch, "task": task, "set": es.name, "tag": es.tag,
                    "checkpoint": step, "env_steps": env_steps, "episodes": episodes, "seed": seed,
                    "episode_length": env.config.episode_length,

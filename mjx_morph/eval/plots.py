@@ -36,3 +36,190 @@ def learning_curve(rows: Sequence[Mapping[str, float]], out: str | Path, title: 
     fig.savefig(out, dpi=110)
     plt.close(fig)
     return out
+
+
+# ---- report figures (mjx_morph.eval.report) ------------------------------------------------------------------------
+def arch_colors(archs: Sequence[str]) -> dict[str, tuple]:
+    """A fixed colour per architecture (its place in mjx_morph.nets.ARCHS), the same in every figure."""
+    try:
+        from ..nets import ARCHS
+    except Exception:  # noqa: BLE001 - colours only
+        ARCHS = ()
+    palette = plt.get_cmap("tab10").colors
+    out, extra = {}, len(ARCHS)
+    for a in archs:
+        if a in ARCHS:
+            i = ARCHS.index(a)
+        else:
+            i, extra = extra, extra + 1
+        out[a] = palette[i % len(palette)]
+    return out
+
+
+def _save(fig, out: str | Path, dpi: int = 110) -> Path:
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=dpi, bbox_inches="tight")
+    plt.close(fig)
+    return out
+
+
+def _millions(ax) -> None:
+    from matplotlib.ticker import FuncFormatter
+    ax.xaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v / 1e6:g}M"))
+
+
+def mean_curves(curves: Mapping[str, tuple], out: str | Path, title: str = "", xlabel: str = "env steps",
+                ylabel: str = "mean episode return", labels: Mapping[str, str] | None = None) -> Path:
+    """One line per key from `curves[key] = (x, mean, lo, hi)`, shaded between lo and hi where finite (pass
+    lo = hi = None for no band)."""
+    colors = arch_colors(list(curves))
+    fig, ax = plt.subplots(figsize=(7, 4.2))
+    for key, (x, mean, lo, hi) in curves.items():
+        x, mean = np.asarray(x, float), np.asarray(mean, float)
+        ax.plot(x, mean, color=colors[key], lw=2, label=(labels or {}).get(key, key))
+        if lo is not None and hi is not None:
+            lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+            ok = np.isfinite(lo) & np.isfinite(hi)
+            if ok.any():
+                ax.fill_between(x, np.where(ok, lo, np.nan), np.where(ok, hi, np.nan), color=colors[key],
+                                alpha=0.2, lw=0)
+    if max((np.nanmax(np.asarray(c[0], float)) for c in curves.values() if len(c[0])), default=0) >= 1e6:
+        _millions(ax)
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    ax.set_title(title)
+    ax.grid(alpha=0.3)
+    ax.legend(loc="best", fontsize=9)
+    return _save(fig, out)
+
+
+def bar_panels(panels: Sequence[Mapping], out: str | Path, title: str = "") -> Path:
+    """Grouped bar charts side by side. Each panel: `groups` (x labels), `series` {name: (means, ci95s)} with one
+    value per group (nan: no bar), `ylabel`, optional `title` and `refs` {name: value} (dashed horizontal lines
+    in the series' colour, labelled `ref_label.format(name)`)."""
+    names = list(dict.fromkeys(n for p in panels for n in p["series"]))
+    colors = arch_colors(names)
+    widths = [max(3.5, 0.3 * len(p["groups"]) * max(1, len(p["series"])) + 1.5) for p in panels]
+    fig, axes = plt.subplots(1, len(panels), figsize=(min(sum(widths), 24), 4.4),
+                             gridspec_kw={"width_ratios": widths}, squeeze=False, layout="constrained")
+    for ax, p in zip(axes[0], panels):
+        groups, series = list(p["groups"]), p["series"]
+        k = max(1, len(series))
+        w = 0.8 / k
+        x = np.arange(len(groups))
+        for j, (name, (means, cis)) in enumerate(series.items()):
+            means = np.asarray(means, float)
+            cis = np.nan_to_num(np.asarray(cis, float), nan=0.0)
+            sel = np.isfinite(means)                       # no bar where there is no value
+            ax.bar((x + (j - (k - 1) / 2) * w)[sel], means[sel], w, yerr=cis[sel], capsize=2,
+                   color=colors[name], label=name, error_kw={"lw": 1, "ecolor": "0.25"})
+        for name, v in (p.get("refs") or {}).items():
+            if v is not None and np.isfinite(v):
+                ax.axhline(v, color=colors.get(name, "0.3"), ls="--", lw=1.3,
+                           label=p.get("ref_label", "{}").format(name))
+        ax.set_xticks(x)
+        long = max((len(g) for g in groups), default=0) > 9
+        ax.set_xticklabels(groups, rotation=30 if long else 0, ha="right" if long else "center")
+        ax.set_ylabel(p.get("ylabel", ""))
+        ax.set_title(p.get("title", ""), fontsize=10)
+        ax.axhline(0, color="0.3", lw=0.6)
+        ax.grid(axis="y", alpha=0.3)
+        ax.legend(loc="best", fontsize=8)
+    if title:
+        fig.suptitle(title)
+    return _save(fig, out)
+
+
+def robot_difference(names: Sequence[str], a_vals: Sequence[float], b_vals: Sequence[float], a: str, b: str,
+                     out: str | Path, title: str = "", unit: str = "test return") -> Path:
+    """Left: per-robot a - b as horizontal bars, in the given order (top first); right: both per-robot values in
+    the same order. Robot names are shown up to 120 robots."""
+    a_vals, b_vals = np.asarray(a_vals, float), np.asarray(b_vals, float)
+    d = a_vals - b_vals
+    n = len(names)
+    colors = arch_colors([a, b])
+    show = n <= 120
+    height = (max(4.0, 0.15 * n + 1.6) if show else 9.0)
+    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(12, height), sharey=True, layout="constrained")
+    y = np.arange(n)[::-1]
+    ax1.barh(y, d, color=[colors[a] if v >= 0 else colors[b] for v in d], height=0.8)
+    ax1.axvline(0, color="0.2", lw=0.8)
+    better = int((d > 0).sum())
+    ax1.set_title(f"{a} − {b}: mean {d.mean():.3g}; {a} better on {better}/{n}" if n else f"{a} − {b}",
+                  fontsize=10)
+    ax1.set_xlabel(f"difference in {unit}")
+    ax2.hlines(y, np.minimum(a_vals, b_vals), np.maximum(a_vals, b_vals), color="0.7", lw=1)
+    ax2.scatter(a_vals, y, color=colors[a], s=14, label=a, zorder=3)
+    ax2.scatter(b_vals, y, color=colors[b], s=14, marker="s", label=b, zorder=3)
+    ax2.set_xlabel(unit)
+    ax2.set_title("per-robot values (same order)", fontsize=10)
+    ax2.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=9, borderaxespad=0)
+    for ax in (ax1, ax2):
+        ax.grid(axis="x", alpha=0.3)
+        ax.set_ylim(-0.7, n - 0.3)
+    if show:
+        ax1.set_yticks(y)
+        ax1.set_yticklabels(names, fontsize=7 if n > 40 else 8)
+    else:
+        ax1.set_yticks([])
+        ax1.set_ylabel(f"{n} robots, sorted by difference")
+    if title:
+        fig.suptitle(title)
+    return _save(fig, out)
+
+
+def reward_per_step(series: Mapping[str, tuple], out: str | Path, zero_steps: int | None = None,
+                    alive: Mapping[str, Sequence[float]] | None = None, title: str = "") -> Path:
+    """`series[name] = (reward trace, zero-state trace or None)`: solid line per name, the zero-state one dashed
+    in the same colour; a vertical marker at `zero_steps`. `alive` (optional): fraction of episodes still running,
+    in a second panel."""
+    colors = arch_colors(list(series))
+    rows = 2 if alive else 1
+    fig, axes = plt.subplots(rows, 1, figsize=(8, 4.2 if rows == 1 else 6.4), sharex=True, squeeze=False,
+                             gridspec_kw={"height_ratios": [3, 1.3][:rows]})
+    ax = axes[0][0]
+    for name, (trace, zero) in series.items():
+        ax.plot(np.arange(len(trace)), trace, color=colors[name], lw=1.4, label=name)
+        if zero is not None:
+            ax.plot(np.arange(len(zero)), zero, color=colors[name], lw=1.4, ls="--",
+                    label=f"{name}, state held at 0 for the first {zero_steps} steps")
+    longest = max((len(tr) for tr, _ in series.values()), default=0)
+    if zero_steps and zero_steps < longest and any(z is not None for _, z in series.values()):
+        for a in axes[:, 0]:
+            a.axvline(zero_steps, color="0.3", ls=":", lw=1)
+    ax.set_ylabel("mean reward per step")
+    ax.grid(alpha=0.3)
+    ax.legend(loc="best", fontsize=8)
+    ax.set_title(title)
+    if alive:
+        ax2 = axes[1][0]
+        for name, tr in alive.items():
+            ax2.plot(np.arange(len(tr)), tr, color=colors.get(name, "0.3"), lw=1.2)
+        ax2.set_ylabel("episodes running")
+        ax2.set_ylim(0, 1.05)
+        ax2.grid(alpha=0.3)
+    axes[-1][0].set_xlabel("time step")
+    fig.tight_layout()
+    return _save(fig, out)
+
+
+def errorbar_lines(series: Mapping[str, tuple], out: str | Path, title: str = "", xlabel: str = "",
+                   ylabel: str = "") -> Path:
+    """`series[name] = (x, mean, ci95)`: one line with 95% CI error bars per name."""
+    colors = arch_colors(list(series))
+    fig, ax = plt.subplots(figsize=(6.5, 4.2))
+    xs = set()
+    for j, (name, (x, m, ci)) in enumerate(series.items()):
+        x = np.asarray(x, float)
+        xs.update(x.tolist())
+        ax.errorbar(x, m, yerr=np.nan_to_num(np.asarray(ci, float), nan=0.0), color=colors[name], marker="o",
+                    capsize=3, lw=1.6, label=name)
+    ax.set_xticks(sorted(xs))
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    ax.set_title(title)
+    ax.grid(alpha=0.3)
+    ax.legend(loc="best", fontsize=9)
+    fig.tight_layout()
+    return _save(fig, out)

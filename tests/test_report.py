@@ -1,0 +1,274 @@
+"""experiments.report / mjx_morph.eval.report on synthetic run directories (config.yaml, metrics.csv, eval/*.json in
+the formats of mjx_morph.ppo.loop and mjx_morph.eval.evaluate, filled with fixed random numbers)."""
+from __future__ import annotations
+
+import csv
+import json
+import subprocess
+import sys
+import zlib
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from scipy import stats
+
+from mjx_morph.eval.evaluate import TASK_RANGES
+from mjx_morph.eval.report import NotARunDir, build_report, find_run_dirs, mean_curve
+from mjx_morph.unimal.variants import CHANGE_TYPES
+
+ROOT = Path(__file__).resolve().parents[1]
+TRAIN = [f"train-{i:03d}" for i in range(100)]
+TEST = [f"test-{i:02d}" for i in range(12)]
+VARIANTS = [f"{b}_{c}_{k}" for b in TRAIN[:3] for c in CHANGE_TYPES for k in range(2)]
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+
+
+def ci_ref(x) -> float:
+    """95% CI half-width (Student t), computed here independently of mjx_morph.eval.evaluate.ci95."""
+    x = np.asarray(x, float)
+    return float(stats.t.ppf(0.975, x.size - 1) * np.std(x, ddof=1) / np.sqrt(x.size))
+
+
+def _summary(task, arch, tag, per_robot, recurrent, rng):
+    v = np.array(list(per_robot.values()))
+    lo, hi = TASK_RANGES[task]
+    n = (v - lo) / (hi - lo)
+    d = {"run_dir": "x", "arch": arch, "task": task, "set": tag, "tag": tag, "checkpoint": 40, "env_steps": 40_000,
+         "episodes": 2, "seed": 0, "episode_length": 1000, "robots": len(v), "episodes_total": 2 * len(v),
+         "mean_return": float(v.mean()), "ci95_return": ci_ref(v), "mean_normalised": float(n.mean()),
+         "ci95_normalised": ci_ref(n), "mean_length": 500.0, "fall_fraction": 0.5, "out_of_bounds_fraction": 0.0,
+         "timeout_fraction": 0.5, "instabilities": 0, "per_robot": per_robot,
+         "reward_trace": rng.uniform(0, 1, 500).tolist(), "alive_trace": np.linspace(1, 0.4, 500).tolist()}
+    if tag == "variants":
+        d["per_change"] = {c: {"robots": 6, "mean_return": float(np.mean([per_robot[k] for k in per_robot
+                                                                         if f"_{c}_" in k]))} for c in CHANGE_TYPES}
+    elif recurrent:
+        d["zero_state_steps"] = 100
+        d["reward_trace_zero_state"] = rng.uniform(0, 1, 500).tolist()
+        d["mean_return_zero_state"] = float(v.mean()) - 10
+    return d
+
+
+def make_run(root: Path, name: str, task="ft", arch="rmomo", seed=0, num_robots=None, context=None,
+             evals=("train", "test", "variants"), metrics=True, iters=40) -> tuple[Path, dict]:
+    """A synthetic run directory; returns (path, {tag: per_robot})."""
+    rng = np.random.default_rng(zlib.crc32(f"{name}|{task}|{arch}|{seed}".encode()))
+    d = root / name
+    (d / "eval").mkdir(parents=True)
+    cfg = {"env": {"name": task}, "arch": {"name": arch}, "seed": seed, "num_robots": num_robots,
+           "robots": "unimal100/train", "total_steps": iters * 1000}
+    if context is not None:
+        cfg["context_features"] = context
+    (d / "config.yaml").write_text(yaml.safe_dump(cfg, sort_keys=False))
+    if metrics:
+        with (d / "metrics.csv").open("w", newline="") as fh:
+            w = csv.writer(fh)
+            w.writerow(["iteration", "env_steps", "episode_return", "episode_length", "wall_s", "sps", "rollout_sps",
+                        "update_sps", "epochs_run"])
+            for it in range(1, iters + 1):
+                wall = 30.0 if it == 1 else float(rng.uniform(1, 3))
+                w.writerow([it, it * 1000, 10 * it + rng.normal(0, 5), 100 + it, wall, 1000 / wall, 2000, 2000, 8])
+    names = {"train": TRAIN[: num_robots or 100], "test": TEST, "variants": VARIANTS}
+    per = {}
+    for tag in evals:
+        pr = {k: float(rng.uniform(50, 3000)) for k in names[tag]}
+        per[tag] = pr
+        (d / "eval" / f"{tag}.json").write_text(json.dumps(
+            _summary(task, arch, tag, pr, arch == "rmomo", rng), indent=1))
+    return d, per
+
+
+@pytest.fixture(scope="module")
+def report(tmp_path_factory):
+    root = tmp_path_factory.mktemp("runs")
+    data = {}
+    for arch in ("rmomo", "modumorph"):
+        for seed in (0, 1):
+            data[("ft", arch, seed)] = make_run(root / "main", f"ft-{arch}-s{seed}", "ft", arch, seed)[1]
+        data[("incline", arch, 0)] = make_run(root / "main", f"incline-{arch}-s0", "incline", arch, 0,
+                                              evals=("train", "test"))[1]
+    for n in (25, 50):
+        data[("size", n)] = make_run(root / "size", f"ft-rmomo-size{n}", num_robots=n, evals=("train", "test"))[1]
+    for feat in ("gear", "body_mass"):
+        data[("ctx", feat)] = make_run(root / "ctx", f"ft-rmomo-{feat}", context=[feat], evals=("test",))[1]
+    no_eval, _ = make_run(root / "bare", "ft-metamorph-s0", arch="metamorph", evals=())
+    nothing, _ = make_run(root / "bare", "ft-metamorph-s1", arch="metamorph", seed=1, evals=(), metrics=False)
+    out = root / "report"
+    md = build_report([root / "main", root / "size", root / "ctx", no_eval, nothing], out)
+    return {"root": root, "out": out, "md": md, "text": md.read_text(), "data": data, "no_eval": no_eval,
+            "nothing": nothing}
+
+
+def _csv(path: Path) -> list[dict]:
+    with path.open(newline="") as fh:
+        return list(csv.DictReader(fh))
+
+
+EXPECTED_PNGS = ["learning_curve_ft", "learning_curve_incline", "returns_ft", "returns_incline",
+                 "returns_pooled_normalised", "robot_diff_ft", "robot_diff_incline", "robot_diff_pooled",
+                 "reward_per_step_ft", "reward_per_step_incline", "train_size_ft", "context_features_ft"]
+
+
+def test_figures_exist_are_pngs_and_linked(report):
+    import matplotlib.image as mpimg
+    for name in EXPECTED_PNGS:
+        p = report["out"] / f"{name}.png"
+        assert p.exists(), name
+        assert p.read_bytes()[:8] == PNG_MAGIC
+        assert p.stat().st_size > 10_000, name
+        img = mpimg.imread(p)
+        assert img.shape[0] > 200 and img.shape[1] > 200 and img[..., :3].std() > 0.05, name
+        assert f"]({name}.png)" in report["text"], name
+
+
+def test_markdown_has_runs_tables_and_csvs(report):
+    text = report["text"]
+    for heading in ("## Runs", "## Tables", "### Returns (main runs)", "### Parameters", "### Compute",
+                    "### Per-robot test differences", "### Training-set size", "### Single context feature",
+                    "### Variant returns by change type", "### Normalised returns pooled across tasks", "## Missing"):
+        assert heading in text, heading
+    for name in ("runs", "returns", "params", "compute", "robot_diff", "train_size", "context_features",
+                 "variants_by_change", "returns_pooled", "robot_diff_ft", "robot_diff_pooled"):
+        assert (report["out"] / f"{name}.csv").exists(), name
+    runs = _csv(report["out"] / "runs.csv")
+    assert len(runs) == 2 * 2 + 2 + 2 + 2 + 2          # ft main, incline main, size, context, bare
+    params = {(r["task"], r["arch"]): int(r["parameters"]) for r in _csv(report["out"] / "params.csv")}
+    assert params[("ft", "rmomo")] > params[("ft", "modumorph")] > 1_000_000
+
+
+def test_returns_table_is_mean_and_ci_over_robots_of_seed_means(report):
+    rows = {(r["task"], r["arch"]): r for r in _csv(report["out"] / "returns.csv")}
+    d = report["data"]
+    for arch in ("rmomo", "modumorph"):
+        for tag in ("train", "test", "variants"):
+            a, b = d[("ft", arch, 0)][tag], d[("ft", arch, 1)][tag]
+            v = np.array([(a[k] + b[k]) / 2 for k in a])
+            r = rows[("ft", arch)]
+            assert float(r[f"{tag}_return"]) == pytest.approx(v.mean(), rel=1e-9)
+            assert float(r[f"{tag}_ci95"]) == pytest.approx(ci_ref(v), rel=1e-9)
+            lo, hi = TASK_RANGES["ft"]
+            assert float(r[f"{tag}_normalised"]) == pytest.approx(((v - lo) / (hi - lo)).mean(), rel=1e-9)
+            assert int(r[f"{tag}_robots"]) == len(v)
+        assert r["seeds"] == "2"
+    # one seed on incline: the CI equals the file's ci95 over robots
+    r = rows[("incline", "rmomo")]
+    v = np.array(list(d[("incline", "rmomo", 0)]["test"].values()))
+    assert float(r["test_ci95"]) == pytest.approx(ci_ref(v), rel=1e-9)
+    assert r["variants_return"] == ""
+    # per change type
+    ch = {(r["arch"], r["change"]): r for r in _csv(report["out"] / "variants_by_change.csv")}
+    a, b = d[("ft", "rmomo", 0)]["variants"], d[("ft", "rmomo", 1)]["variants"]
+    v = np.array([(a[k] + b[k]) / 2 for k in a if "_gear_" in k])
+    assert float(ch[("rmomo", "gear")]["return"]) == pytest.approx(v.mean())
+    assert float(ch[("rmomo", "gear")]["ci95"]) == pytest.approx(ci_ref(v))
+
+
+def test_per_robot_difference(report):
+    d = report["data"]
+    rows = _csv(report["out"] / "robot_diff_ft.csv")
+    assert list(rows[0]) == ["robot", "rmomo_return", "modumorph_return", "difference"]
+    assert {r["robot"] for r in rows} == set(TEST)
+    for r in rows:
+        a = (d[("ft", "rmomo", 0)]["test"][r["robot"]] + d[("ft", "rmomo", 1)]["test"][r["robot"]]) / 2
+        b = (d[("ft", "modumorph", 0)]["test"][r["robot"]] + d[("ft", "modumorph", 1)]["test"][r["robot"]]) / 2
+        assert float(r["rmomo_return"]) == pytest.approx(a)
+        assert float(r["modumorph_return"]) == pytest.approx(b)
+        assert float(r["difference"]) == pytest.approx(a - b)
+    diffs = [float(r["difference"]) for r in rows]
+    assert diffs == sorted(diffs, reverse=True)
+    pooled = _csv(report["out"] / "robot_diff_pooled.csv")
+    assert len(pooled) == 2 * len(TEST)
+    lo, hi = TASK_RANGES["incline"]
+    r = next(r for r in pooled if r["task:robot"] == f"incline:{TEST[3]}")
+    want = ((d[("incline", "rmomo", 0)]["test"][TEST[3]] - d[("incline", "modumorph", 0)]["test"][TEST[3]])
+            / (hi - lo))
+    assert float(r["difference"]) == pytest.approx(want)
+    summary = {r["task"]: r for r in _csv(report["out"] / "robot_diff.csv")}
+    assert float(summary["ft"]["mean_difference"]) == pytest.approx(np.mean(diffs))
+    assert float(summary["ft"]["ci95"]) == pytest.approx(ci_ref(diffs))
+
+
+def test_size_context_and_compute_tables(report):
+    d = report["data"]
+    size = {(r["arch"], int(r["num_robots"])): r for r in _csv(report["out"] / "train_size.csv")}
+    assert sorted(size) == [("rmomo", 25), ("rmomo", 50), ("rmomo", 100)]      # the full set stands at 100
+    v = np.array(list(d[("size", 25)]["test"].values()))
+    assert float(size[("rmomo", 25)]["test_return"]) == pytest.approx(v.mean())
+    assert float(size[("rmomo", 25)]["ci95"]) == pytest.approx(ci_ref(v))
+    assert size[("rmomo", 100)]["seeds"] == "2"
+    ctx = {r["context_features"]: r for r in _csv(report["out"] / "context_features.csv") if r["arch"] == "rmomo"}
+    assert set(ctx) == {"gear", "body_mass", "all"}
+    assert float(ctx["gear"]["test_return"]) == pytest.approx(np.mean(list(d[("ctx", "gear")]["test"].values())))
+    runs = {Path(r["run"]).name: r for r in _csv(report["out"] / "runs.csv")}
+    r = runs["ft-rmomo-s0"]
+    with (report["root"] / "main" / "ft-rmomo-s0" / "metrics.csv").open() as fh:
+        m = list(csv.DictReader(fh))
+    wall = sum(float(x["wall_s"]) for x in m)
+    assert float(r["h_per_100M"]) == pytest.approx(wall / 40_000 * 1e8 / 3600)
+    assert float(r["mean_sps"]) == pytest.approx(np.mean([float(x["sps"]) for x in m[1:]]))
+    assert float(r["final_train_return"]) == pytest.approx(np.mean([float(x["episode_return"]) for x in m[-2:]]))
+    assert runs["ft-rmomo-gear"]["kind"] == "context" and runs["ft-rmomo-size25"]["kind"] == "size"
+
+
+def test_runs_without_eval_are_reported_missing(report):
+    missing = report["text"].split("## Missing", 1)[1]
+    assert f"{report['no_eval'].name}`: no eval/*.json" in missing
+    assert f"{report['nothing'].name}`: no metrics.csv rows" in missing
+    # a report of runs that have no eval at all still builds, listing what it could not draw
+    out = report["root"] / "report_bare"
+    text = build_report([report["no_eval"], report["nothing"]], out).read_text()
+    assert (out / "learning_curve_ft.png").exists()
+    assert "ft: return bars — no main run has eval/*.json" in text
+    assert "reward per timestep" in text.split("## Missing", 1)[1]
+
+
+def test_mean_curve_band():
+    x = np.arange(0, 1000, 10.0)
+    grid, m, lo, hi, n = mean_curve([(x, x), (x, x + 2)], points=50, smooth=False)
+    assert np.allclose(m, grid + 1)
+    half = stats.t.ppf(0.975, 1) * np.sqrt(2) / np.sqrt(2)
+    assert np.allclose(hi - m, half) and np.allclose(m - lo, half)
+    _, m1, lo1, _, _ = mean_curve([(x, x)], points=20, smooth=False)
+    assert np.isnan(lo1).all() and np.isfinite(m1).all()
+    # a shorter seed: beyond its end only the longer one counts, without a band
+    grid, m, lo, _, n = mean_curve([(x, x), (x[:50], x[:50] + 2)], points=100, smooth=False)
+    assert n[0] == 2 and n[-1] == 1 and np.isnan(lo[-1]) and m[-1] == pytest.approx(grid[-1])
+
+
+def test_find_run_dirs(tmp_path):
+    a, _ = make_run(tmp_path / "study", "a", evals=(), metrics=False)
+    b, _ = make_run(tmp_path / "study" / "nested", "b", evals=(), metrics=False)
+    assert find_run_dirs([tmp_path / "study"]) == [a, b]
+    assert find_run_dirs([a, tmp_path / "study"]) == [a, b]
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(NotARunDir, match="not a run directory"):
+        find_run_dirs([tmp_path / "empty"])
+
+
+def test_cli_rejects_a_non_run_path(tmp_path):
+    p = subprocess.run([sys.executable, "-m", "experiments.report", "runs=[/nonexistent]", f"out={tmp_path / 'o'}"],
+                       cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert p.returncode == 2, p.stderr
+    assert "error: /nonexistent: not a run directory (no config.yaml)" in p.stderr
+    assert not (tmp_path / "o").exists()
+
+
+def test_classify_main_size_context():
+    from mjx_morph.eval.report import Run, classify
+
+    def run(n=None, ctx=None, task="ft"):
+        return Run(Path("x"), {"env": {"name": task}, "arch": {"name": "rmomo"}, "num_robots": n,
+                               "context_features": ctx})
+    smoke = [run(2), run(2), run(2, ["gear"])]                 # tiny runs: all on 2 robots
+    classify(smoke)
+    assert [r.kind for r in smoke] == ["main", "main", "context"]
+    study = [run(25), run(50), run(100), run(None, task="incline"), run(10, task="incline")]
+    classify(study)
+    assert [r.kind for r in study] == ["size", "size", "main", "main", "size"]
+    mixed = [run(None), run(25), run(None, ["gear"]), run(25, ["gear"]), run(None, list(
+        ["body_pos", "body_ipos", "body_iquat", "geom_quat", "body_mass", "body_shape", "jnt_pos", "joint_range",
+         "joint_axis", "gear"]))]
+    classify(mixed)
+    assert [r.kind for r in mixed] == ["main", "size", "context", "other", "main"]
