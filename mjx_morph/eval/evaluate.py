@@ -99,12 +99,12 @@ def resolve_set(cfg: dict, name: str) -> EvalSet:
     return EvalSet(name.replace("/", "_"), name, rs.robots)
 
 
-def _summary(res: SweepResult, robot_of: np.ndarray, names: list[str], task: str) -> dict:
-    per_robot = {}
-    for i, nm in enumerate(names):
-        sel = robot_of == i
-        if sel.any():
-            per_robot[nm] = float(res.ret[sel].mean())
+def _per_robot(res: SweepResult, robot_of: np.ndarray, names: Sequence[str]) -> dict[str, float]:
+    """Mean return of each robot that has episodes in `res`."""
+    return {nm: float(res.ret[robot_of == i].mean()) for i, nm in enumerate(names) if (robot_of == i).any()}
+
+
+def _summary(res: SweepResult, per_robot: dict[str, float], task: str) -> dict:
     means = np.array(list(per_robot.values()))
     norm = normalised(means, task)
     return {"robots": len(per_robot), "episodes_total": int(res.ret.size),
@@ -139,39 +139,38 @@ def evaluate_run(run_dir: str | Path, sets: Iterable[str] = ("train", "test", "v
     for name in sets:
         t0 = time.perf_counter()
         es = resolve_set(cfg, name)
-        names = tuple(m.name for m in es.robots)
-        if names not in sweepers:              # the same robots under another label: no new env, no recompilation
-            sweepers[names] = Sweeper(make_run_env(cfg, es.robots, **env_over), model, trace_steps,
-                                      compiler_options=options)
-        sweeper = sweepers[names]
-        env = sweeper.env
+        names = [m.name for m in es.robots]
+        if tuple(names) not in sweepers:       # the same robots under another label: no new env, no recompilation
+            sweepers[tuple(names)] = Sweeper(make_run_env(cfg, es.robots, **env_over), model, trace_steps,
+                                             compiler_options=options)
+        sweeper = sweepers[tuple(names)]
         groups = es.groups or {None: list(range(len(es.robots)))}
         chunk = max_envs or max(len(g) for g in groups.values()) * episodes   # one compiled size for all groups
-        results, robot_of, summary = [], [], {}
+        results, robot_of, episode_of, per_change = [], [], [], {}
         for change, idx in groups.items():
             r = np.repeat(np.asarray(idx, np.int32), episodes)
             e = np.tile(np.arange(episodes, dtype=np.int32), len(idx))
             res = sweeper(ts.params, ts.obs_rms, r, e, seed=seed, max_envs=chunk)
             results.append(res)
             robot_of.append(r)
+            episode_of.append(e)
             if change is not None:
-                summary.setdefault("per_change", {})[change] = _summary(res, r, [m.name for m in es.robots], task)
-        res, robot_of = _concat(results), np.concatenate(robot_of)
-        names = list(names)
+                per_change[change] = _summary(res, _per_robot(res, r, names), task)
+        res, robot_of, episode_of = _concat(results), np.concatenate(robot_of), np.concatenate(episode_of)
+        per_robot = _per_robot(res, robot_of, names)
         summary = {"run_dir": str(run_dir), "arch": model.arch, "task": task, "set": es.name, "tag": es.tag,
                    "checkpoint": step, "env_steps": env_steps, "episodes": episodes, "seed": seed,
-                   "episode_length": env.config.episode_length,
-                   **_summary(res, robot_of, names, task), **summary}
-        summary["per_robot"] = {nm: float(res.ret[robot_of == i].mean()) for i, nm in enumerate(names)}
+                   "episode_length": sweeper.env.config.episode_length, **_summary(res, per_robot, task),
+                   **({"per_change": per_change} if per_change else {}), "per_robot": per_robot}
         summary["reward_trace"] = res.reward.mean(axis=1).tolist()
         summary["alive_trace"] = (np.arange(res.reward.shape[0])[:, None] < res.length[None, :]).mean(axis=1).tolist()
         if es.groups is None and model.recurrent and zero_state_steps > 0:
-            z = sweeper(ts.params, ts.obs_rms, robot_of, np.tile(np.arange(episodes), len(names)), seed=seed,
-                        zero_state_steps=zero_state_steps, max_envs=chunk)
+            z = sweeper(ts.params, ts.obs_rms, robot_of, episode_of, seed=seed, zero_state_steps=zero_state_steps,
+                        max_envs=chunk)
             summary["zero_state_steps"] = int(zero_state_steps)
             summary["reward_trace_zero_state"] = z.reward.mean(axis=1).tolist()
             summary["mean_return_zero_state"] = float(z.ret.mean())
-        _write(out_dir, es, res, robot_of, summary, task)
+        _write(out_dir, es, res, robot_of, episode_of, summary, task)
         summaries[es.tag] = summary
         extra = "".join(f"; {c} {s['mean_return']:.1f}" for c, s in summary.get("per_change", {}).items())
         log(f"[mjx_morph] {es.tag} ({es.name}, {len(names)} robots x {episodes} episodes): mean return "
@@ -180,12 +179,8 @@ def evaluate_run(run_dir: str | Path, sets: Iterable[str] = ("train", "test", "v
     return summaries
 
 
-def _write(out_dir: Path, es: EvalSet, res: SweepResult, robot_of: np.ndarray, summary: dict, task: str) -> None:
-    episode_no = np.zeros_like(robot_of)
-    seen: dict[int, int] = {}
-    for i, r in enumerate(robot_of):
-        episode_no[i] = seen.get(int(r), 0)
-        seen[int(r)] = episode_no[i] + 1
+def _write(out_dir: Path, es: EvalSet, res: SweepResult, robot_of: np.ndarray, episode_of: np.ndarray,
+           summary: dict, task: str) -> None:
     norm = normalised(res.ret, task)
     with (out_dir / f"{es.tag}.csv").open("w", newline="") as fh:
         w = csv.writer(fh)
@@ -194,7 +189,7 @@ def _write(out_dir: Path, es: EvalSet, res: SweepResult, robot_of: np.ndarray, s
         for i, r in enumerate(robot_of):
             name = es.robots[int(r)].name
             base, change = (variant_change(name)[:2] if es.groups else (name, ""))
-            w.writerow([name, base, change, int(episode_no[i]), f"{res.ret[i]:.4f}", f"{norm[i]:.5f}",
+            w.writerow([name, base, change, int(episode_of[i]), f"{res.ret[i]:.4f}", f"{norm[i]:.5f}",
                         int(res.length[i]), int(res.fell[i]), int(res.out_of_bounds[i]), int(res.timeout[i]),
                         int(res.unstable[i])])
     (out_dir / f"{es.tag}.json").write_text(json.dumps(summary, indent=1))

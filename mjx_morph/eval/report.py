@@ -38,18 +38,13 @@ from typing import Iterable, Sequence
 import numpy as np
 import yaml
 
+from ..nets.context import CONTEXT_GROUPS as _GROUPS
+from ..unimal.variants import CHANGE_TYPES, variant_change
 from . import plots
 from .evaluate import TASK_RANGES, ci95, normalised
 
-try:
-    from ..nets.context import CONTEXT_GROUPS as _GROUPS
-    CONTEXT_GROUPS: tuple[str, ...] = tuple(_GROUPS)
-except Exception:  # noqa: BLE001 - only the order of the groups in figures
-    CONTEXT_GROUPS = ("body_pos", "body_ipos", "body_iquat", "geom_quat", "body_mass", "body_shape", "jnt_pos",
-                      "joint_range", "joint_axis", "gear")
-from ..unimal.variants import CHANGE_TYPES, variant_change
-
 SETS = ("train", "test", "val", "variants")
+CONTEXT_GROUPS: tuple[str, ...] = tuple(_GROUPS)     # in column order: the order of the groups in figures
 TASK_ORDER = tuple(TASK_RANGES)
 CONF = Path(__file__).resolve().parents[2] / "experiments" / "conf"
 DEFAULT_COMPARE = ("rmomo", "modumorph")

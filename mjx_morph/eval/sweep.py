@@ -21,13 +21,14 @@ Large sets run in equal chunks of at most `max_envs` episodes, so one compiled p
 """
 from __future__ import annotations
 
-from typing import Any, NamedTuple
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..nets.model import Model, Obs
+from ..nets.model import Model
+from ..ppo.trainer import normalize_obs
 from ..sim.env import Env
 from ..unimal.variants import stable_hash
 
@@ -40,6 +41,14 @@ class SweepResult(NamedTuple):
     timeout: np.ndarray        # (N,) bool, reached the episode length
     unstable: np.ndarray       # (N,) bool, ended by a simulator instability (counted, never trained on)
     reward: np.ndarray         # (trace_steps, N) reward of each early step, 0 after the episode's end
+
+
+def policy_step(env: Env, model: Model, params, obs_rms, cache, state, carry, reset):
+    """One deterministic step of a batch of envs: the Gaussian's mean for the normalised observation, then the env
+    step (no sampler: automatic resets draw robots uniformly). -> (next env state, next carry)."""
+    obs = normalize_obs(obs_rms, state.obs)
+    mu, _, carry = model.step(params, env.robots, obs, carry, reset, cache=cache)
+    return env.vstep(state, mu), carry
 
 
 def episode_keys(seed: int, env: Env, robot_ids: jax.Array, episode_ids: jax.Array) -> jax.Array:
@@ -69,12 +78,8 @@ class Sweeper:
 
         def body(c, t):
             state, carry, alive, ep = c
-            p = state.obs.proprio
-            obs = Obs(obs_rms.normalize(p.reshape(n, -1)).reshape(p.shape), state.obs.prev_action, state.obs.robot,
-                      state.obs.hfield)
             carry = jax.tree.map(lambda z, s: jnp.where(t < zero_state_steps, z, s), zero, carry)
-            mu, _, carry = model.step(params, env.robots, obs, carry, jnp.full((n,), t == 0), cache=cache)
-            nxt = env.vstep(state, mu)
+            nxt, carry = policy_step(env, model, params, obs_rms, cache, state, carry, jnp.full((n,), t == 0))
             ends = alive & nxt.done
             ep = jax.tree.map(lambda e, new: jnp.where(ends, new, e), ep, nxt.episode)
             reward = jnp.where(alive, nxt.reward, 0.0)
@@ -114,8 +119,3 @@ class Sweeper:
         return SweepResult(ret=ep.ret.astype(np.float64), length=ep.length.astype(np.int64), fell=ep.fell,
                            out_of_bounds=ep.out_of_bounds, timeout=ep.timeout, unstable=ep.unstable,
                            reward=rew.astype(np.float64))
-
-
-def frozen_policy(train_state: Any) -> tuple[Any, Any]:
-    """(params, observation statistics) of a train state: what evaluation needs."""
-    return train_state.params, train_state.obs_rms

@@ -34,14 +34,14 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from ..nets.model import Model, Obs
+from ..nets.model import Model
 from ..ppo.trainer import FAST_COMPILE
 from ..sim import padding, terrain
 from ..sim.env import Env
 from ..unimal import render
 from ..unimal.errors import RobotError
 from .evaluate import resolve_set
-from .sweep import episode_keys
+from .sweep import episode_keys, policy_step
 
 RENDER_PATCH = 121       # height-field vertices per side drawn for csr / obstacle (0.1 m apart: 12 m)
 _COMPILED: dict = {}     # the last few compiled rollouts, by (env, model, steps, compiler options)
@@ -53,17 +53,12 @@ def _rollout_fn(env: Env, model: Model, steps: int, compiler_options: dict | Non
         return _COMPILED[ck][-1]
 
     def run(params, obs_rms, robot, key):
-        robots = env.robots
-        cache = model.robot_cache(params, robots)
+        cache = model.robot_cache(params, env.robots)
         state = env.vreset(key[None], robot[None])
 
         def body(c, t):
             state, carry = c
-            p = state.obs.proprio
-            obs = Obs(obs_rms.normalize(p.reshape(1, -1)).reshape(p.shape), state.obs.prev_action, state.obs.robot,
-                      state.obs.hfield)
-            mu, _, carry = model.step(params, robots, obs, carry, jnp.full((1,), t == 0), cache=cache)
-            nxt = env.vstep(state, mu)
+            nxt, carry = policy_step(env, model, params, obs_rms, cache, state, carry, jnp.full((1,), t == 0))
             return (nxt, carry), (state.qpos[0], nxt.done[0])
 
         _, (qpos, done) = jax.lax.scan(body, (state, model.initial_carry(1)), jnp.arange(steps))

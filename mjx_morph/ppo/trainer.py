@@ -140,6 +140,14 @@ class Transition(NamedTuple):
 FAST_COMPILE = {"xla_backend_optimization_level": 0, "xla_llvm_disable_expensive_passes": True}
 
 
+def normalize_obs(rms: RunningMeanStd, env_obs) -> Obs:
+    """The model's input from a batch (N, ...) of env observations: the proprioceptive part normalised with `rms`
+    (flattened to 12 x 52 values per env), the rest as it is."""
+    p = env_obs.proprio
+    flat = rms.normalize(p.reshape(p.shape[0], -1))
+    return Obs(flat.reshape(p.shape), env_obs.prev_action, env_obs.robot, env_obs.hfield)
+
+
 class Trainer:
     def __init__(self, env: Env, model: Model, config: PPOConfig, fast_compile: bool = False):
         config = config.for_model(model.recurrent)
@@ -181,11 +189,7 @@ class Trainer:
             tail_first=jnp.ones((b, cfg.num_envs), bool), tail_carry=carry, sampler=sampler, key=k_next,
             iteration=jnp.int32(0))
 
-    @staticmethod
-    def _normalize(rms: RunningMeanStd, env_obs) -> Obs:
-        p = env_obs.proprio
-        flat = rms.normalize(p.reshape(p.shape[0], -1))
-        return Obs(flat.reshape(p.shape), env_obs.prev_action, env_obs.robot, env_obs.hfield)
+    _normalize = staticmethod(normalize_obs)
 
     # ------------------------------------------------------------------ rollout
     def _act(self, params, cache, sampler, c, key):
