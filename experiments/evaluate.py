@@ -14,6 +14,7 @@ import hydra
 from omegaconf import DictConfig, OmegaConf
 
 from mjx_morph.eval.evaluate import evaluate_run
+from mjx_morph.ppo.loop import use_compile_cache
 from mjx_morph.ppo.run_dir import RunDirError
 from mjx_morph.unimal.errors import RobotError
 
@@ -23,6 +24,7 @@ def main(cfg: DictConfig) -> None:
     c = OmegaConf.to_container(cfg, resolve=True)
     sets = c["robots"] if isinstance(c["robots"], list) else [c["robots"]]
     try:
+        use_compile_cache(c.get("compile_cache"))
         evaluate_run(c["run_dir"], sets, episodes=int(c["episodes"]), seed=int(c["seed"]),
                      zero_state_steps=int(c["zero_state_steps"]), step=c["step"], max_envs=c["max_envs"],
                      episode_length=c["episode_length"], trace_steps=int(c["trace_steps"]))

@@ -15,7 +15,7 @@ import sys
 import hydra
 from omegaconf import DictConfig
 
-from mjx_morph.ppo.loop import train
+from mjx_morph.ppo.loop import train, use_compile_cache
 from mjx_morph.ppo.run_dir import RunDirError
 from mjx_morph.unimal.errors import RobotError
 
@@ -23,6 +23,7 @@ from mjx_morph.unimal.errors import RobotError
 @hydra.main(config_path="conf", config_name="config", version_base=None)
 def main(cfg: DictConfig) -> None:
     try:
+        use_compile_cache(cfg.get("compile_cache"))
         train(cfg)
     except (RunDirError, RobotError, ValueError) as e:
         print(f"error: {e}", file=sys.stderr)

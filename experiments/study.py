@@ -56,11 +56,13 @@ def main(argv=None) -> int:
     from hydra import compose, initialize_config_dir
 
     from mjx_morph.eval.evaluate import evaluate_run
-    from mjx_morph.ppo.loop import train
+    from mjx_morph.ppo.loop import train, use_compile_cache
     for i, (d, ov, sets) in enumerate(runs):
         print(f"[study] {i + 1}/{len(runs)}: {d}", flush=True)
         with initialize_config_dir(config_dir=str(CONF), version_base=None):
             cfg = compose(config_name="config", overrides=ov)
+        if i == 0:
+            use_compile_cache(cfg.get("compile_cache"))
         train(cfg)
         evaluate_run(d, sets, episodes=a.episodes)
     print(f"[study] done; report: python -m experiments.report runs=[{a.out / a.study}] out=<dir>")

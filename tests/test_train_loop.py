@@ -12,7 +12,7 @@ import jax
 import numpy as np
 import pytest
 
-from mjx_morph.ppo.loop import build, train
+from mjx_morph.ppo.loop import build, train, use_compile_cache
 from mjx_morph.ppo.run_dir import RunDir, RunDirError
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -95,3 +95,29 @@ def test_unknown_config_key_is_an_error():
     out = subprocess.run([sys.executable, "-m", "experiments.run", "preset=smoke", "no_such_key=1"], cwd=ROOT,
                          capture_output=True, text=True, timeout=120, env={**os.environ, "HYDRA_FULL_ERROR": "0"})
     assert out.returncode != 0 and "no_such_key" in out.stderr
+
+
+def test_compile_cache_is_written_and_read_by_a_second_process(tmp_path):
+    """`compile_cache=` (experiments.run/evaluate) keeps compiled programs on disk: a first process writes an entry,
+    a second one with the same program finds it (JAX counts persistent-cache hits) and writes nothing new."""
+    prog = ("import sys, jax, jax.numpy as jnp\n"
+            "from jax import monitoring\n"
+            "from mjx_morph.ppo.loop import use_compile_cache\n"
+            "hits = []\n"
+            "monitoring.register_event_listener(lambda e, **kw: hits.append(e) if 'cache_hits' in e else None)\n"
+            "use_compile_cache(sys.argv[1], min_compile_s=0)\n"
+            "jax.jit(lambda x: jnp.sin(x) @ x.T)(jnp.ones((8, 8))).block_until_ready()\n"
+            "print('hits', len(hits))\n")
+    cache = tmp_path / "xla"
+
+    def run():
+        out = subprocess.run([sys.executable, "-c", prog, str(cache)], cwd=ROOT, capture_output=True, text=True,
+                             timeout=120)
+        assert out.returncode == 0, out.stderr
+        return int(out.stdout.split()[-1]), sorted(p.name for p in cache.iterdir())
+
+    hits1, files1 = run()
+    hits2, files2 = run()
+    assert hits1 == 0 and files1, "the first process must write its compiled program"
+    assert hits2 >= 1 and files2 == files1, "the second process must read it back"
+    assert use_compile_cache(None) is None

@@ -38,6 +38,19 @@ def _plain(cfg: Any) -> dict:
     return dict(cfg)
 
 
+def use_compile_cache(path: str | Path | None, min_compile_s: float = 2.0) -> Path | None:
+    """Keep compiled XLA programs in `path` across processes (JAX's persistent compilation cache), so a resumed run
+    or a second evaluation skips most compilation (H100, modumorph: first iteration 90 s fresh, 21 s resumed).
+    Must run before the first compilation of the process; None or "" leaves the cache off."""
+    if not path:
+        return None
+    p = Path(path).expanduser()
+    p.mkdir(parents=True, exist_ok=True)
+    jax.config.update("jax_compilation_cache_dir", str(p))
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", float(min_compile_s))
+    return p
+
+
 _BUILT: dict[str, tuple] = {}
 
 
