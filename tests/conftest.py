@@ -1,7 +1,16 @@
-"""Shared fixtures. Tests that need the original robots skip with a message when they are absent."""
+"""Shared fixtures. Tests that need the original robots skip with a message when they are absent.
+
+Compiled programs go to a persistent XLA cache (.pytest_cache/xla, or $MJX_MORPH_XLA_CACHE; set it empty for none),
+shared with the CLI subprocesses the tests start: compilation is most of the suite's time, and a rerun of the suite
+on the 2-core CPU machine took 6.5 min instead of 13.8."""
 from __future__ import annotations
 
+import os
+from pathlib import Path
+
 import pytest
+
+from mjx_morph.ppo.loop import use_compile_cache
 
 from mjx_morph.unimal.sets import unimals_root
 
@@ -17,7 +26,9 @@ def unimals():
     return root
 
 
-ROOT = __import__("pathlib").Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[1]
+os.environ.setdefault("MJX_MORPH_XLA_CACHE", str(ROOT / ".pytest_cache" / "xla"))
+use_compile_cache(os.environ["MJX_MORPH_XLA_CACHE"], min_compile_s=1.0)
 
 
 def smoke_config(*overrides: str):
