@@ -3,6 +3,8 @@ PY      ?= python3
 VENV    := .venv
 BIN     := $(VENV)/bin
 STAMP   := $(VENV)/.installed
+# pytest-xdist processes for `make test` (1: serial)
+WORKERS ?= 2
 
 .PHONY: setup test demo bench clean
 
@@ -14,8 +16,10 @@ $(STAMP): pyproject.toml
 	$(BIN)/pip install -q -e '.[dev]'
 	touch $(STAMP)
 
+# whole test files go to $(WORKERS) processes (pytest-xdist; serial if it is missing or WORKERS=1)
 test: $(STAMP)
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q $$([ "$(WORKERS)" -gt 1 ] && $(BIN)/python -c 'import xdist' 2>/dev/null \
+	  && echo "-n $(WORKERS) --dist loadfile")
 
 # the main job on the embedded default: a smoke run of R-MoMo on flat terrain with the shipped generated robots
 demo: $(STAMP)
