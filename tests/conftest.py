@@ -11,7 +11,6 @@ from pathlib import Path
 import pytest
 
 from mjx_morph.ppo.loop import use_compile_cache
-
 from mjx_morph.unimal.sets import unimals_root
 
 NO_UNIMALS = ("the original robots (../shared/unimals_100 or $MJX_MORPH_UNIMALS) are not available; "
