@@ -1,36 +1,21 @@
-"""Train a policy: `python -m experiments.run env=<ft|incline|csr|obstacle> arch=<name> [overrides]`.
+"""Train a policy: `python -m experiments.run env=<ft|incline|csr|obstacle> arch=<name> [key=value ...]`.
 
     python -m experiments.run env=incline arch=rmomo                 # the GPU default preset
     python -m experiments.run preset=smoke                            # 2 robots, tiny nets, a few CPU minutes
     python -m experiments.run preset=paper seed=1 total_steps=200000000
     python -m experiments.run robots=unimal100/train num_robots=25 run_dir=runs/size25
+    python -m experiments.run ppo.kl_threshold=0.03 model.d_model=64 env.self_collision=true
 
-Rerunning with the same run_dir resumes from its newest checkpoint. Unknown keys are errors (Hydra struct mode).
-Configs: experiments/conf/{config.yaml, env/, arch/, preset/}.
+Rerunning with the same run_dir resumes from its newest checkpoint. Every key, its type and its default:
+mjx_morph/run/config.py (`--help` prints them); unknown keys and wrong types are errors.
 """
 from __future__ import annotations
 
 import sys
 
-import hydra
-from omegaconf import DictConfig
+from mjx_morph.run import RunConfig, train
 
-from mjx_morph.ppo.loop import train, use_compile_cache
-from mjx_morph.ppo.run_dir import RunDirError
-from mjx_morph.unimal.errors import RobotError
-
-
-@hydra.main(config_path="conf", config_name="config", version_base=None)
-def main(cfg: DictConfig) -> None:
-    try:
-        use_compile_cache(cfg.get("compile_cache"))
-        train(cfg)
-    except (RunDirError, RobotError, ValueError) as e:
-        print(f"error: {e}", file=sys.stderr)
-        sys.exit(2)
-    except KeyboardInterrupt:
-        sys.exit(130)
-
+from .cli import main
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main(train, "config", RunConfig, __doc__))

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from mjx_morph.ppo.loop import use_compile_cache
+from mjx_morph.run import use_compile_cache
 from mjx_morph.unimal.sets import unimals_root
 
 NO_UNIMALS = ("the original robots (../shared/unimals_100 or $MJX_MORPH_UNIMALS) are not available; "
@@ -32,17 +32,15 @@ use_compile_cache(os.environ["MJX_MORPH_XLA_CACHE"], min_compile_s=1.0)
 
 def smoke_config(*overrides: str):
     """The smoke training config (2 generated robots, tiny networks, 3 iterations) with extra overrides."""
-    from hydra import compose, initialize_config_dir
-    with initialize_config_dir(config_dir=str(ROOT / "experiments" / "conf"), version_base=None):
-        return compose(config_name="config", overrides=["preset=smoke", "robots=gen/train", "progress=false",
-                                                        *overrides])
+    from mjx_morph.run import compose_run_config
+    return compose_run_config(["preset=smoke", "robots=gen/train", "progress=false", *overrides])
 
 
 @pytest.fixture(scope="session")
 def smoke_run(tmp_path_factory):
     """One finished smoke run of rmomo, shared by the training, evaluation, report and render tests (its compiled
     train step is cached per process, so other smoke runs of the same config compile nothing)."""
-    from mjx_morph.ppo.loop import train
+    from mjx_morph.run import train
     d = tmp_path_factory.mktemp("runs") / "smoke-rmomo"
     cfg = smoke_config(f"run_dir={d}")
     train(cfg)
@@ -52,7 +50,7 @@ def smoke_run(tmp_path_factory):
 @pytest.fixture(scope="session")
 def smoke_run_ff(tmp_path_factory):
     """The same smoke run for the feed-forward MetaMorph."""
-    from mjx_morph.ppo.loop import train
+    from mjx_morph.run import train
     d = tmp_path_factory.mktemp("runs") / "smoke-metamorph"
     cfg = smoke_config(f"run_dir={d}", "arch=metamorph")
     train(cfg)

@@ -17,9 +17,8 @@ import pytest
 
 from mjx_morph.eval.evaluate import TASK_RANGES, evaluate_run, normalised, resolve_set
 from mjx_morph.eval.sweep import Sweeper, episode_keys
-from mjx_morph.nets.model import Obs
-from mjx_morph.ppo.loop import load_run, make_run_env
-from mjx_morph.ppo.trainer import FAST_COMPILE
+from mjx_morph.layout import Obs
+from mjx_morph.run import FAST_COMPILE, load_run, make_env_for
 from mjx_morph.unimal.variants import CHANGE_TYPES, variant_change
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -28,8 +27,9 @@ from conftest import EVAL_STEPS as STEPS
 
 @pytest.fixture(scope="module")
 def loaded(smoke_run):
-    cfg, env, model, _, ts, _ = load_run(smoke_run[0])
-    short = make_run_env(cfg, env.morphologies, episode_length=STEPS)
+    run = load_run(smoke_run[0])
+    cfg, env, model, ts = run.config, run.experiment.env, run.experiment.model, run.state
+    short = make_env_for(cfg, env.morphologies, episode_length=STEPS)
     return cfg, short, model, ts
 
 
@@ -106,7 +106,7 @@ def test_set_names_labels_and_keys_by_robot_name(loaded):
     with pytest.raises(ValueError, match="has no val set"):
         resolve_set(cfg, "val")
     # an episode's key depends on the robot's name, not on its index in the set
-    swapped = make_run_env(cfg, env.morphologies[::-1], episode_length=STEPS)
+    swapped = make_env_for(cfg, env.morphologies[::-1], episode_length=STEPS)
     a = episode_keys(0, env, jnp.asarray([0, 1]), jnp.asarray([2, 2]))
     b = episode_keys(0, swapped, jnp.asarray([1, 0]), jnp.asarray([2, 2]))
     np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
@@ -122,12 +122,10 @@ def test_evaluate_cli_reports_bad_input(tmp_path):
 
 def test_context_feature_runs_see_only_their_feature():
     from conftest import smoke_config
-    from omegaconf import OmegaConf
 
-    from mjx_morph.nets.context import CONTEXT_GROUPS, context_mask
-    from mjx_morph.ppo.loop import build
-    cfg = OmegaConf.to_container(smoke_config("context_features=[gear]"), resolve=True)
-    env = build(cfg)[0]
+    from mjx_morph.layout import CONTEXT_GROUPS, context_mask
+    from mjx_morph.run import build
+    env = build(smoke_config("env.context_features=[gear]")).env
     ctx = np.asarray(env.robots.context)
     keep = np.zeros(35, bool)
     keep[list(CONTEXT_GROUPS["gear"])] = True

@@ -17,7 +17,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from mjx_morph.nets import (ARCHS, NUM_TOKENS, STATE_FEATURES, Obs, Robots, distribution, make_model)
+from mjx_morph.layout import NUM_TOKENS, STATE_FEATURES, Obs, Robots
+from mjx_morph.nets import ARCHS, distribution, make_model
 from mjx_morph.nets.recurrent import GRUCell, LSTMCell
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -9,11 +9,13 @@ import numpy as np
 import pytest
 
 from mjx_morph.nets import ARCHS, make_model
-from mjx_morph.ppo.trainer import PPOConfig, Trainer
+from mjx_morph.ppo.config import PPOConfig
+from mjx_morph.ppo.trainer import Trainer
 from toy_env import ToyEnv
 
 TINY = dict(d_model=16, num_layers=1, num_heads=2, ffn_dim=32)
-CFG = PPOConfig(num_envs=3, rollout_len=16, window=8, burn_in=4, minibatch_size=16, epochs=2, total_steps=3 * 16 * 4)
+CFG = PPOConfig(num_envs=3, rollout_len=16, window=8, burn_in=4, minibatch_size=16, epochs=2)
+TOTAL_STEPS = 3 * 16 * 4
 
 
 @pytest.fixture(scope="module")
@@ -24,7 +26,7 @@ def env():
 @pytest.mark.parametrize("arch", ARCHS)
 def test_first_minibatch_ratio_one_and_windows_reproduce_rollout(env, arch):
     model = make_model(arch, hfield=False, decoder_dims=[], **TINY)
-    trainer = Trainer(env, model, CFG, fast_compile=True)
+    trainer = Trainer(env, model, CFG, TOTAL_STEPS, fast_compile=True)
     ts = trainer.init(jax.random.PRNGKey(0))
     for it in range(2):  # the second rollout's first windows burn in on the first rollout's tail
         params = ts.params
@@ -42,7 +44,7 @@ def test_first_minibatch_ratio_one_and_windows_reproduce_rollout(env, arch):
 def test_kl_early_stop(env, threshold, expect):
     model = make_model("metamorph", hfield=False, decoder_dims=[], **TINY)
     cfg = PPOConfig(**{**CFG.__dict__, "kl_threshold": threshold, "lr": 3e-2, "warmup_iters": 0})
-    trainer = Trainer(env, model, cfg, fast_compile=True)
+    trainer = Trainer(env, model, cfg, TOTAL_STEPS, fast_compile=True)
     ts = trainer.init(jax.random.PRNGKey(1))
     before = ts.params
     ts, batch, _ = trainer.rollout(ts)

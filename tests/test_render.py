@@ -15,9 +15,9 @@ import pytest
 from experiments import render as cli
 from mjx_morph.eval import video
 from mjx_morph.eval.sweep import episode_keys
-from mjx_morph.nets.model import Obs
-from mjx_morph.ppo.loop import load_run
-from mjx_morph.ppo.trainer import FAST_COMPILE
+from mjx_morph.layout import Obs
+from mjx_morph.run import load_run
+from mjx_morph.run import FAST_COMPILE
 from mjx_morph.unimal import render
 from mjx_morph.unimal.render import RenderUnavailable
 
@@ -28,7 +28,8 @@ STEPS = 20
 @pytest.fixture(scope="module")
 def run(smoke_run):
     d = smoke_run[0]
-    cfg, env, model, _, ts, _ = load_run(d)
+    run = load_run(d)
+    cfg, env, model, ts = run.config, run.experiment.env, run.experiment.model, run.state
     qpos, done = video.rollout_qpos(env, model, ts.params, ts.obs_rms, 1, STEPS, seed=0,
                                     compiler_options=FAST_COMPILE)
     return d, cfg, env, model, ts, qpos, done

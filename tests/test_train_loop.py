@@ -12,8 +12,7 @@ import jax
 import numpy as np
 import pytest
 
-from mjx_morph.ppo.loop import build, train, use_compile_cache
-from mjx_morph.ppo.run_dir import RunDir, RunDirError
+from mjx_morph.run import RunDir, RunDirError, build, train, use_compile_cache
 
 ROOT = Path(__file__).resolve().parents[1]
 CONF = ROOT / "experiments" / "conf"
@@ -22,12 +21,9 @@ CONF = ROOT / "experiments" / "conf"
 from conftest import smoke_config as config
 
 
-def params_of(run_dir: Path, cfg):
-    from omegaconf import OmegaConf
-    plain = OmegaConf.to_container(cfg, resolve=True)
-    _, _, trainer, _ = build(plain)
-    run = RunDir(run_dir, plain, ())
-    ts = run.restore(run.latest_step(), trainer.init(jax.random.PRNGKey(0)))
+def params_of(run_dir: Path, trainer):
+    run = RunDir(run_dir, {}, ())
+    ts = run.restore(run.latest_step(), trainer.abstract_state())
     run.close()
     return ts
 
@@ -52,10 +48,11 @@ def test_smoke_run_writes_everything(full_run):
 def test_interrupted_and_resumed_run_ends_like_uninterrupted(full_run, tmp_path):
     d_full, cfg = full_run
     d = tmp_path / "resumed"
-    train(config(f"run_dir={d}", "stop_after=2"))
+    exp = build(cfg)
+    train(config(f"run_dir={d}", "stop_after=2"), exp)
     assert RunDir(d, {}, ()).latest_step() == 2
-    train(config(f"run_dir={d}"))
-    a, b = params_of(d_full, cfg), params_of(d, cfg)
+    train(config(f"run_dir={d}"), exp)
+    a, b = params_of(d_full, exp.trainer), params_of(d, exp.trainer)
     for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b)):
         np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
     assert [int(r["iteration"]) for r in RunDir(d, {}, ()).read_metrics()] == [1, 2, 3]
@@ -102,7 +99,7 @@ def test_compile_cache_is_written_and_read_by_a_second_process(tmp_path):
     a second one with the same program finds it (JAX counts persistent-cache hits) and writes nothing new."""
     prog = ("import sys, jax, jax.numpy as jnp\n"
             "from jax import monitoring\n"
-            "from mjx_morph.ppo.loop import use_compile_cache\n"
+            "from mjx_morph.run import use_compile_cache\n"
             "hits = []\n"
             "monitoring.register_event_listener(lambda e, **kw: hits.append(e) if 'cache_hits' in e else None)\n"
             "use_compile_cache(sys.argv[1], min_compile_s=0)\n"

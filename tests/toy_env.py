@@ -9,7 +9,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from mjx_morph.nets.model import Robots
+from mjx_morph.layout import Robots
 from mjx_morph.sim import sampling
 
 

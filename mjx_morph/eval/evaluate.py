@@ -28,8 +28,9 @@ from typing import Callable, Iterable, Sequence
 
 import numpy as np
 
+from ..run import FAST_COMPILE, RunConfig, load_run, make_env_for, train_robots
 from ..unimal.morphology import Morphology
-from ..unimal.sets import default_train_set, load_set
+from ..unimal.sets import load_set
 from ..unimal.variants import CHANGE_TYPES, variant_change
 from .sweep import Sweeper, SweepResult
 
@@ -59,18 +60,12 @@ class EvalSet:
     groups: dict[str, list[int]] | None = None  # variants: change type -> robot indices
 
 
-def train_robots(cfg: dict) -> tuple[str, tuple[Morphology, ...]]:
-    name = cfg.get("robots") or default_train_set(cfg.get("robots_root"))
-    robots = load_set(name, cfg.get("robots_root")).robots
-    return name, tuple(robots[: cfg["num_robots"]] if cfg.get("num_robots") else robots)
-
-
-def resolve_set(cfg: dict, name: str) -> EvalSet:
+def resolve_set(cfg: RunConfig, name: str) -> EvalSet:
     """A set name of `experiments.evaluate` (a shortcut or any `load_set` name) -> the robots to evaluate."""
     if ":" in name:                                   # "<tag>:<set>": a set evaluated under another label
         tag, _, inner = name.partition(":")
         return dataclasses.replace(resolve_set(cfg, inner), tag=tag)
-    root = cfg.get("robots_root")
+    root = cfg.robots_root
     train_name, trained = train_robots(cfg)
     family = train_name.split("/")[0] if train_name.split("/")[0] in ("unimal100", "gen") else None
     if name == "train":
@@ -125,15 +120,15 @@ def evaluate_run(run_dir: str | Path, sets: Iterable[str] = ("train", "test", "v
                  log: Callable[[str], None] = print) -> dict[str, dict]:
     """Evaluate the run's checkpoint `step` (default: newest) on each set; returns {tag: summary} and writes the
     files described in the module docstring."""
-    from ..ppo.loop import load_run, make_run_env
-    from ..ppo.trainer import FAST_COMPILE
     run_dir = Path(run_dir)
-    cfg, _, model, trainer, ts, step = load_run(run_dir, step)
-    task = cfg["env"]["name"]
+    loaded = load_run(run_dir, step)
+    cfg, model, trainer, ts, step = loaded.config, loaded.experiment.model, loaded.experiment.trainer, \
+        loaded.state, loaded.step
+    task = cfg.env.task
     env_over = {"episode_length": int(episode_length)} if episode_length else {}
     out_dir = run_dir / "eval"
     out_dir.mkdir(exist_ok=True)
-    options = FAST_COMPILE if cfg.get("fast_compile") else None
+    options = FAST_COMPILE if cfg.fast_compile else None
     env_steps = step * trainer.cfg.steps_per_iter
     summaries, sweepers = {}, {}
     for name in sets:
@@ -141,7 +136,7 @@ def evaluate_run(run_dir: str | Path, sets: Iterable[str] = ("train", "test", "v
         es = resolve_set(cfg, name)
         names = [m.name for m in es.robots]
         if tuple(names) not in sweepers:       # the same robots under another label: no new env, no recompilation
-            sweepers[tuple(names)] = Sweeper(make_run_env(cfg, es.robots, **env_over), model, trace_steps,
+            sweepers[tuple(names)] = Sweeper(make_env_for(cfg, es.robots, **env_over), model, trace_steps,
                                              compiler_options=options)
         sweeper = sweepers[tuple(names)]
         groups = es.groups or {None: list(range(len(es.robots)))}

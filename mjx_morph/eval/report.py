@@ -38,7 +38,7 @@ from typing import Iterable, Sequence
 import numpy as np
 import yaml
 
-from ..nets.context import CONTEXT_GROUPS as _GROUPS
+from ..layout import CONTEXT_GROUPS as _GROUPS
 from ..unimal.variants import CHANGE_TYPES, variant_change
 from . import plots
 from .evaluate import TASK_RANGES, ci95, normalised

@@ -28,7 +28,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..nets.model import Model
-from ..ppo.trainer import normalize_obs
+from ..run import normalize_obs
 from ..sim.env import Env
 from ..unimal.variants import stable_hash
 

@@ -35,10 +35,11 @@ import mujoco
 import numpy as np
 
 from ..nets.model import Model
-from ..ppo.trainer import FAST_COMPILE
 from ..sim import padding, terrain
 from ..sim.env import Env
+from ..run import FAST_COMPILE, RunConfig, make_env_for
 from ..unimal import render
+from ..unimal.reader import load_robot
 from ..unimal.errors import RobotError
 from .evaluate import resolve_set
 from .sweep import episode_keys, policy_step
@@ -71,18 +72,16 @@ def _rollout_fn(env: Env, model: Model, steps: int, compiler_options: dict | Non
     return fn
 
 
-def find_robot(cfg: dict, run_env: Env, robot: str, robots: str | None = None) -> tuple[Env, int]:
+def find_robot(cfg: RunConfig, run_env: Env, robot: str, robots: str | None = None) -> tuple[Env, int]:
     """(env, robot index) for `robot` of a run with config `cfg` and train env `run_env`: a robot name looked up in
     the set `robots` (a name of `experiments.evaluate`) if given, else in the run's train set (`run_env` itself),
     then in its held-out `test` set; or a robot XML file, alone in its own env. A set other than the train set gets
     its own env (the robots' shared tree, as `experiments.evaluate` builds it)."""
-    from ..ppo.loop import make_run_env
     path = Path(robot).expanduser()
     if robots is None and (path.suffix == ".xml" or path.is_file()):
         if not path.is_file():
             raise FileNotFoundError(f"{path}: no such robot file")
-        from ..unimal.reader import load_robot
-        return make_run_env(cfg, [load_robot(path)]), 0
+        return make_env_for(cfg, [load_robot(path)]), 0
     names = list(run_env.sm.names)
     looked = []
     if robots in (None, "train"):
@@ -100,7 +99,7 @@ def find_robot(cfg: dict, run_env: Env, robot: str, robots: str | None = None) -
         if es is not None:
             found = [m.name for m in es.robots]
             if robot in found:
-                return make_run_env(cfg, es.robots), found.index(robot)
+                return make_env_for(cfg, es.robots), found.index(robot)
             looked.append(f"{es.name} ({len(found)} robots)")
     raise ValueError(f"robot {robot!r} not found in " + "; ".join(looked) + f". Give a robot name (e.g. "
                      f"{names[0]!r}), robots=<set> to look in another set, or a robot XML file")

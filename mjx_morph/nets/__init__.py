@@ -14,13 +14,9 @@ table, make_model), distribution (frozen-std Gaussian).
 """
 from . import distribution
 from .distribution import ACTION_STD
-from .model import Model, Obs, Robots, as_obs, example_obs, example_robots
-from .network import (ACTS_PER_TOKEN, CTX_DIM, HFIELD_DIM, NUM_ACTIONS, NUM_TOKENS, OBS_DIM, STATE_DIM,
-                      STATE_FEATURES, NetConfig, PolicyNet)
-from .zoo import ARCHS, describe, make_model, model_from_config
+from .model import Model, as_obs, example_obs, example_robots
+from .network import NetConfig, PolicyNet
+from .zoo import ARCHS, make_model
 
-__all__ = [
-    "ACTION_STD", "ACTS_PER_TOKEN", "ARCHS", "CTX_DIM", "HFIELD_DIM", "Model", "NUM_ACTIONS", "NUM_TOKENS",
-    "NetConfig", "OBS_DIM", "Obs", "PolicyNet", "Robots", "STATE_DIM", "STATE_FEATURES", "as_obs", "describe",
-    "distribution", "example_obs", "example_robots", "make_model", "model_from_config",
-]
+__all__ = ["ACTION_STD", "ARCHS", "Model", "NetConfig", "PolicyNet", "as_obs", "distribution", "example_obs",
+           "example_robots", "make_model"]

@@ -1,11 +1,7 @@
 """Actor + critic behind one interface for acting (one step) and training (a sequence with burn-in).
 
-Inputs
-- `Robots` (constant per robot, R robots): context [R,12,35], node_mask [R,12] (True = real limb),
-  act_mask [R,24] (True = real actuator; entry 2*l + k is limb l, joint slot k).
-- `Obs` (per env / sample, any leading batch shape): proprio [...,12,52] (running-normalised),
-  prev_action [...,24], robot [...] int32 (row of `Robots`), hfield [...,1410] for height-map tasks.
-  Plain dicts with these keys are accepted too.
+Inputs: `Robots` (constant per robot) and `Obs` (per env or sample, any leading batch shape, proprio already
+normalised), both defined in `mjx_morph.layout`; plain dicts with the `Obs` keys are accepted too.
 
 How the previous action enters (the models that use it: rmemo, rmomo, grumomo, hyperrmomo): the model clips
 it to [-1, 1] (the control MuJoCo executes; `clip_prev_action`), zeroes the entries with act_mask False and
@@ -22,41 +18,24 @@ during a rollout the parameters do not change, so compute it once per rollout an
 Training: `sequence` runs the per-limb embedding for all T*B samples at once, the cell as a `lax.scan` over
 time (its input projection hoisted out of the scan), and the transformer + decoder once over all
 (T - burn_in) * B window samples. The burn-in steps only advance the cell, under `stop_gradient`.
-
-Measured on one H100 (JAX 0.11.2), one learner update (forward, backward, Adam) on 64 windows x (20 burn-in +
-80) steps from 100 robots, ft: metamorph 22.9 ms, modumorph 24.1, rmemo 31.2, rmomo 31.0, grumomo 30.5,
-hyperrmomo 36.9 (default matmul precision); rmemo 53.8 and rmomo 52.2 at precision "highest" (DESIGN.md's
-plain implementation: 72.6 ms). Acting, one `step` for 4096 envs with a precomputed cache: 4.9-8.3 ms.
 """
 from __future__ import annotations
 
 import dataclasses
-from typing import Any, Mapping, NamedTuple
+from typing import Any, Mapping
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..layout import (ACTS_PER_TOKEN, CTX_DIM, HFIELD_DIM, NUM_ACTIONS, NUM_TOKENS, OBS_DIM, STATE_FEATURES, Obs,
+                      Robots)
 from . import distribution
-from .network import (ACTS_PER_TOKEN, CTX_DIM, HFIELD_DIM, NUM_ACTIONS, NUM_TOKENS, OBS_DIM, STATE_FEATURES,
-                      NetConfig, PolicyNet)
+from .network import NetConfig, PolicyNet
 from .recurrent import zero_state
 
 Params = dict
 Carry = dict
-
-
-class Robots(NamedTuple):
-    context: jax.Array    # [R, 12, 35] float32, normalised context (zero on padded limbs)
-    node_mask: jax.Array  # [R, 12] bool, True = real limb (torso + limbs)
-    act_mask: jax.Array   # [R, 24] bool, True = real actuator
-
-
-class Obs(NamedTuple):
-    proprio: jax.Array              # [..., 12, 52] float32
-    prev_action: jax.Array          # [..., 24] float32
-    robot: jax.Array                # [...] int32
-    hfield: jax.Array | None = None  # [..., 1410] float32 (csr, obstacle)
 
 
 def as_obs(obs: Any) -> Obs:
@@ -109,8 +88,9 @@ class Model:
             "robot": idx,
         }
         if self.net.hfield:
-            if obs.hfield is None:
-                raise ValueError(f"{self.arch} was built with hfield=True but the observation has no 'hfield'")
+            if obs.hfield is None or jnp.shape(obs.hfield)[-1] != self.net.hfield_size:
+                raise ValueError(f"{self.arch} was built with hfield=True but the observation has no "
+                                 f"{self.net.hfield_size}-value 'hfield'")
             parts["hfield"] = jnp.asarray(obs.hfield, jnp.float32)
         return parts
 

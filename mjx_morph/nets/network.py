@@ -15,7 +15,7 @@ instances with separate parameters (architecture.md §1.2). The forward pass is 
 `proprio` [N,12,52], `state` [N,12,17], `prev_action` [N,12,2], `node_mask` [N,12], `hfield` [N,1410] or None,
 `robot` [N] (row into the robot cache).
 
-Per-robot work and the gather (see DESIGN.md "Policy compute").
+Per-robot work and the gather.
 - Fixed attention: queries and keys depend on the context only, so the attention PROBABILITIES of every layer
   are computed once per robot ([R, layers, heads, 12, 12]) and gathered per sample (1,440 floats per sample
   for 5 layers x 2 heads); per sample only the value projection, probs @ v, the output projection and the
@@ -26,12 +26,9 @@ Per-robot work and the gather (see DESIGN.md "Policy compute").
   hypernetwork head (bilinear in x and the context code) costs the same 52 x 128 intermediate per limb-sample
   and 128x the FLOPs, and evaluating x against all R robots' matrices costs R x the FLOPs. The gathered
   intermediate (in x out floats per limb-sample, ~27 KB for the 54 x 128 embedding) is comparable to the
-  transformer's own activations. Measured on one H100 (JAX 0.11.2, default matmul precision, learner update
-  = forward + backward + Adam on 64 windows x (20 burn-in + 80) steps, 100 robots): rmomo 31.0 ms, the same as
-  rmemo (31.2 ms), which has no hypernetwork; writing the product as multiply-and-sum (32.3 ms), clipping
-  the gather (30.9 ms) or gathering through a one-hot matmul (35.5 ms) gains nothing. The generated hidden
-  decoder layer of csr/obstacle (192 x 64 per limb) costs more: rmomo on csr 43.0 ms. A sort-by-robot grouped
-  matmul (`jax.lax.ragged_dot`) is the remaining lever if this ever dominates.
+  transformer's own activations. Alternatives measured and rejected (multiply-and-sum, a
+  clipped gather, a one-hot matmul gather) are in docs/benchmarks.md; a sort-by-robot grouped matmul
+  (`jax.lax.ragged_dot`) is the remaining lever if this ever dominates.
 - hyperrmomo's hypernetwork input changes every step (context code + recurrent state), so its generated
   matrices are per sample by construction; they are produced by one matmul per layer and consumed at once.
 """
@@ -45,19 +42,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..layout import ACTS_PER_TOKEN, CTX_DIM, HFIELD_DIM, NUM_TOKENS, OBS_DIM, STATE_DIM
 from .layers import MLP, EncoderLayer, TorchLinear, uniform, zeros
 from .recurrent import CELLS, zero_state
-
-NUM_TOKENS = 12          # limb tokens per robot (torso + up to 10 limbs + padding; MetaMorph MAX_LIMBS)
-OBS_DIM = 52             # per-limb proprioceptive features (environments.md §6)
-CTX_DIM = 35             # per-limb context features
-ACTS_PER_TOKEN = 2       # joint slots per limb; action entry 2*l + k
-NUM_ACTIONS = NUM_TOKENS * ACTS_PER_TOKEN
-HFIELD_DIM = 1410        # 30 x 47 height-map samples (csr, obstacle)
-#: The 17 time-varying features of the 52: body_xpos, xvelp, xvelr, xquat (0-12), joint slot A qpos,
-#: qvel (30, 31), joint slot B qpos, qvel (41, 42).
-STATE_FEATURES = np.array([*range(13), 30, 31, 41, 42], dtype=np.int32)
-STATE_DIM = len(STATE_FEATURES)
 
 EMBED_INPUT_DIMS = {
     "obs": OBS_DIM,                                   # MetaMorph / ModuMorph: the 52 features

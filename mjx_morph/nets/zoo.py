@@ -37,7 +37,7 @@ Design choices where the spec leaves a gap (architecture.md §5 "gaps"), all ove
 from __future__ import annotations
 
 import dataclasses
-from typing import Any, Sequence
+from typing import Any, List, Optional, Sequence
 
 from .model import Model
 from .network import EMBED_INPUT_DIMS, NetConfig
@@ -58,6 +58,33 @@ _STRUCTURE: dict[str, dict[str, Any]] = {
 
 _SIZES = ("d_model", "num_layers", "num_heads", "ffn_dim", "plus_hidden", "hfield_size", "hfield_dims")
 _MODEL_FLAGS = ("action_std", "clip_prev_action", "clone_layer_init")
+
+
+@dataclasses.dataclass
+class ModelOptions:
+    """Overrides of an architecture's sizes and flags (`experiments.run model.<key>=...`); None keeps the
+    architecture's own value (`NetConfig` / `Model` defaults, `_STRUCTURE`). Which keys apply to which architecture
+    is checked by `make_model`."""
+    d_model: Optional[int] = None
+    num_layers: Optional[int] = None
+    num_heads: Optional[int] = None
+    ffn_dim: Optional[int] = None
+    hidden: Optional[int] = None            # recurrent cell size (must equal d_model)
+    plus_hidden: Optional[int] = None       # *_plus: width of the extra per-limb layers
+    hfield_size: Optional[int] = None
+    hfield_dims: Optional[List[int]] = None
+    embed_input: Optional[str] = None       # obs | obs_action | state_action
+    embed_scale: Optional[bool] = None
+    context_mlp: Optional[bool] = None      # R-MeMo: the paper text's MLP(context) added to the cell output
+    cell_residual: Optional[bool] = None    # transformer input = embedding + cell output
+    scale_after_cell: Optional[bool] = None  # sqrt(D) after the cell instead of before it
+    action_std: Optional[float] = None
+    clip_prev_action: Optional[bool] = None
+    clone_layer_init: Optional[bool] = None
+
+    def overrides(self) -> dict[str, Any]:
+        """The keys that are set, as `make_model` keyword arguments."""
+        return {k: v for k, v in dataclasses.asdict(self).items() if v is not None}
 
 
 def _allowed(arch: str) -> set[str]:
@@ -100,21 +127,3 @@ def make_model(arch: str, *, hfield: bool, decoder_dims: Sequence[int] = (), **o
         ov["hfield_dims"] = tuple(int(x) for x in ov["hfield_dims"])
     net = NetConfig(**{**_STRUCTURE[arch], **ov}, hfield=bool(hfield), decoder_dims=tuple(int(x) for x in decoder_dims))
     return Model(arch, net, **model_kw)
-
-
-def model_from_config(arch_cfg: Any, env_cfg: Any, **overrides: Any) -> Model:
-    """Build from Hydra configs: arch_cfg has `name` and `model` (flags), env_cfg has `hfield_obs` and
-    `decoder_dims` (experiments/conf/{arch,env}/*.yaml)."""
-    model_cfg = arch_cfg.get("model") or {}
-    if hasattr(model_cfg, "_metadata"):                     # an OmegaConf node
-        from omegaconf import OmegaConf
-        model_cfg = OmegaConf.to_container(model_cfg, resolve=True)
-    model_cfg = dict(model_cfg)
-    model_cfg.update(overrides)
-    return make_model(str(arch_cfg.name), hfield=bool(env_cfg.hfield_obs),
-                      decoder_dims=list(env_cfg.decoder_dims), **model_cfg)
-
-
-def describe(model: Model) -> str:
-    return f"{model.arch}: " + ", ".join(f"{f.name}={getattr(model.net, f.name)}"
-                                         for f in dataclasses.fields(model.net))

@@ -27,7 +27,6 @@ Everything is device-side; the Python loop only logs, checkpoints and evaluates.
 """
 from __future__ import annotations
 
-import dataclasses
 from typing import Any, NamedTuple
 
 import jax
@@ -35,59 +34,15 @@ import jax.numpy as jnp
 import optax
 from flax import struct
 
-from ..nets.model import Model, Obs
+from ..layout import Obs
+from ..nets.model import Model
 from ..sim import sampling
 from ..sim.env import Env
+from .config import PPOConfig
 from .gae import gae
 from .loss import LossInfo, ppo_loss
 from .schedule import learning_rate
 from .stats import RewardScaler, RunningMeanStd
-
-
-@dataclasses.dataclass(frozen=True)
-class PPOConfig:
-    num_envs: int = 1024
-    rollout_len: int = 80           # control steps per env per iteration (a multiple of the window)
-    window: int = 80                # training window of recurrent models (feed-forward: 1)
-    burn_in: int = 20               # burn-in prefix of each window (feed-forward: 0)
-    minibatch_size: int = 5120      # transitions per minibatch (= 64 windows of 80)
-    epochs: int = 8
-    gamma: float = 0.99
-    lam: float = 0.95
-    clip_eps: float = 0.2
-    value_coef: float = 0.5
-    entropy_coef: float = 0.0
-    lr: float = 3e-4
-    warmup_iters: int = 5
-    adam_eps: float = 1e-5
-    max_grad_norm: float = 0.5
-    kl_threshold: float = 0.05
-    total_steps: int = 100_000_000
-    sampling: str = "balanced"
-
-    @property
-    def steps_per_iter(self) -> int:
-        return self.num_envs * self.rollout_len
-
-    @property
-    def num_iters(self) -> int:
-        return max(1, self.total_steps // self.steps_per_iter)
-
-    def for_model(self, recurrent: bool) -> "PPOConfig":
-        """Feed-forward models train on single transitions (W = 1, B = 0), as the original PPO."""
-        return self if recurrent else dataclasses.replace(self, window=1, burn_in=0)
-
-    def check(self) -> None:
-        if self.rollout_len % self.window:
-            raise ValueError(f"ppo.rollout_len={self.rollout_len} must be a multiple of ppo.window={self.window}")
-        if self.minibatch_size % self.window:
-            raise ValueError(f"ppo.minibatch_size={self.minibatch_size} must be a multiple of ppo.window={self.window}")
-        if self.burn_in > self.rollout_len:
-            raise ValueError(f"ppo.burn_in={self.burn_in} exceeds ppo.rollout_len={self.rollout_len}")
-        windows = self.num_envs * self.rollout_len // self.window
-        if windows < self.minibatch_size // self.window:
-            raise ValueError(f"a rollout has {windows} windows, fewer than one minibatch "
-                             f"({self.minibatch_size // self.window} windows): lower ppo.minibatch_size")
 
 
 @struct.dataclass
@@ -117,6 +72,37 @@ class Batch(NamedTuple):
     value: jax.Array             # (T, N)
     adv: jax.Array               # (T, N) normalised
     ret: jax.Array               # (T, N)
+
+
+class ActCarry(NamedTuple):
+    """What one rollout step carries to the next."""
+    env: Any                     # batched EnvState
+    carry: Any                   # per-env recurrent state before the current observation
+    first: jax.Array             # (N,) the current observation starts an episode
+    obs_rms: RunningMeanStd
+    rew: RewardScaler
+
+
+class Minibatch(NamedTuple):
+    """Windows of a batch as time-major sequences of B + W steps (M windows), and their PPO targets (W, M)."""
+    obs: Obs                     # (B + W, M, ...)
+    first: jax.Array             # (B + W, M)
+    carry0: Any                  # (M, ...) recurrent state where each burn-in starts
+    action: jax.Array
+    logp: jax.Array
+    value: jax.Array
+    adv: jax.Array
+    ret: jax.Array
+
+
+class SGDCarry(NamedTuple):
+    """What one minibatch update carries to the next (all epochs' minibatches are one scan)."""
+    params: Any
+    opt_state: Any
+    stopped: jax.Array           # the KL stop fired: every later minibatch is skipped
+    acc: LossInfo                # sums over the applied minibatches
+    applied: jax.Array           # () int32 minibatches applied
+    first_info: LossInfo         # loss statistics of the first minibatch (ratio 1, KL 0 with fresh rollouts)
 
 
 class Transition(NamedTuple):
@@ -149,10 +135,14 @@ def normalize_obs(rms: RunningMeanStd, env_obs) -> Obs:
 
 
 class Trainer:
-    def __init__(self, env: Env, model: Model, config: PPOConfig, fast_compile: bool = False):
+    """Chunked recurrent PPO for one env and one model; `total_steps` sets the learning-rate schedule's horizon."""
+
+    def __init__(self, env: Env, model: Model, config: PPOConfig, total_steps: int, fast_compile: bool = False):
         config = config.for_model(model.recurrent)
         config.check()
         self.env, self.model, self.cfg = env, model, config
+        self.total_steps = int(total_steps)
+        self.num_iters = max(1, self.total_steps // config.steps_per_iter)
         self.num_windows = config.rollout_len // config.window      # K per env
         self.mb_windows = config.minibatch_size // config.window
         self.num_minibatches = config.num_envs * self.num_windows // self.mb_windows
@@ -170,6 +160,11 @@ class Trainer:
     def init(self, key: jax.Array) -> TrainState:
         """The initial train state (jitted: environment resets and parameter init compile into one program)."""
         return self._init(key)
+
+    def abstract_state(self) -> TrainState:
+        """The train state's structure, shapes and dtypes (`jax.eval_shape` of `init`): nothing is computed. A
+        checkpoint is restored into it."""
+        return jax.eval_shape(self._init_state, jax.random.PRNGKey(0))
 
     def _init_state(self, key: jax.Array) -> TrainState:
         cfg, env, model = self.cfg, self.env, self.model
@@ -192,7 +187,7 @@ class Trainer:
     _normalize = staticmethod(normalize_obs)
 
     # ------------------------------------------------------------------ rollout
-    def _act(self, params, cache, sampler, c, key):
+    def _act(self, params, cache, sampler, c: ActCarry, key):
         env_state, carry, first, obs_rms, rew = c
         model, robots = self.model, self.env.robots
         obs_rms = obs_rms.update(env_state.obs.proprio.reshape(self.cfg.num_envs, -1))
@@ -206,7 +201,7 @@ class Trainer:
         ep = nxt.episode
         tr = Transition(obs, first, action, logp, value, scaled, nxt.reward, nxt.done, nxt.truncated,
                         ep.ret, ep.length, ep.robot, ep.unstable, ep.fell)
-        return (nxt, carry, nxt.done, obs_rms, rew), tr
+        return ActCarry(nxt, carry, nxt.done, obs_rms, rew), tr
 
     def _rollout(self, ts: TrainState):
         cfg = self.cfg
@@ -217,20 +212,20 @@ class Trainer:
         # run, with the current parameters: acting and training then see identical states (ratio exactly 1).
         carry = self.model.advance(ts.params, self.env.robots, ts.tail_obs, ts.tail_carry, ts.tail_first,
                                    cache=cache) if b else ts.carry
-        c0 = (ts.env, carry, ts.first, ts.obs_rms, ts.rew)
+        c0 = ActCarry(ts.env, carry, ts.first, ts.obs_rms, ts.rew)
         keys = jax.random.split(k_roll, cfg.rollout_len).reshape(self.num_windows, cfg.window, -1)
         save_at = w - b if b else w          # the next window's burn-in starts after w - b steps of this one
 
         def act(c, x):                       # one body for every step, so the env step is compiled once
             i, k = x
             c, saved = c
-            saved = jax.tree.map(lambda s, cur: jnp.where(i == save_at, cur, s), saved, c[1])
+            saved = jax.tree.map(lambda s, cur: jnp.where(i == save_at, cur, s), saved, c.carry)
             c, tr = self._act(ts.params, cache, ts.sampler, c, k)
             return (c, saved), tr
 
-        def window(c, ks):
-            (c, saved), tr = jax.lax.scan(act, (c, c[1]), (jnp.arange(w), ks))
-            return c, (tr, saved if b else c[1])
+        def window(c, ks):                   # saved: the recurrent state where the next window's burn-in starts
+            (c, saved), tr = jax.lax.scan(act, (c, c.carry), (jnp.arange(w), ks))
+            return c, (tr, saved if b else c.carry)
 
         c, (tr, burn_starts) = jax.lax.scan(window, c0, keys)
         tr = jax.tree.map(lambda x: x.reshape(cfg.rollout_len, *x.shape[2:]), tr)   # (T, N, ...)
@@ -263,7 +258,7 @@ class Trainer:
                 "reward_mean": tr.raw_reward.mean(), "value_mean": tr.value.mean()}
 
     # ------------------------------------------------------------------ update
-    def _minibatch(self, batch: Batch, ids: jax.Array):
+    def _minibatch(self, batch: Batch, ids: jax.Array) -> Minibatch:
         """Windows `ids` (flat index k * N + n) -> time-major sequences of B + W steps and their targets."""
         cfg = self.cfg
         n_env = cfg.num_envs
@@ -275,16 +270,16 @@ class Trainer:
         first = batch.first[t_seq, n[None, :]]
         carry0 = jax.tree.map(lambda s: s[k, n], batch.starts)
         pick = lambda x: x[t_win, n[None, :]]
-        return obs, first, carry0, pick(batch.action), pick(batch.logp), pick(batch.value), pick(batch.adv), \
-            pick(batch.ret)
+        return Minibatch(obs, first, carry0, pick(batch.action), pick(batch.logp), pick(batch.value),
+                         pick(batch.adv), pick(batch.ret))
 
     def _loss(self, params, batch: Batch, ids):
-        obs, first, carry0, action, logp_old, value_old, adv, ret = self._minibatch(batch, ids)
+        mb = self._minibatch(batch, ids)
         model, robots = self.model, self.env.robots
-        mu, value, _ = model.sequence(params, robots, obs, carry0, first, burn_in=self.cfg.burn_in)
-        act_mask = robots.act_mask[obs.robot[self.cfg.burn_in:]]
-        logp = model.log_prob(mu, action, act_mask)
-        info = ppo_loss(logp, logp_old, adv, value, value_old, ret, model.entropy(mu, act_mask),
+        mu, value, _ = model.sequence(params, robots, mb.obs, mb.carry0, mb.first, burn_in=self.cfg.burn_in)
+        act_mask = robots.act_mask[mb.obs.robot[self.cfg.burn_in:]]
+        logp = model.log_prob(mu, mb.action, act_mask)
+        info = ppo_loss(logp, mb.logp, mb.adv, value, mb.value, mb.ret, model.entropy(mu, act_mask),
                         clip_eps=self.cfg.clip_eps, value_coef=self.cfg.value_coef,
                         entropy_coef=self.cfg.entropy_coef)
         return info.loss, info
@@ -293,14 +288,15 @@ class Trainer:
         """(logp, value) recomputed for every window of `batch`, and the stored (logp_old, value_old), all
         (W, num_windows). With the rollout's parameters they must agree: the test of the recurrent bookkeeping."""
         ids = jnp.arange(self.cfg.num_envs * self.num_windows)
-        obs, first, carry0, action, logp_old, value_old, _, _ = self._minibatch(batch, ids)
-        mu, value, _ = self.model.sequence(params, self.env.robots, obs, carry0, first, burn_in=self.cfg.burn_in)
-        logp = self.model.log_prob(mu, action, self.env.robots.act_mask[obs.robot[self.cfg.burn_in:]])
-        return logp, value, logp_old, value_old
+        mb = self._minibatch(batch, ids)
+        mu, value, _ = self.model.sequence(params, self.env.robots, mb.obs, mb.carry0, mb.first,
+                                           burn_in=self.cfg.burn_in)
+        logp = self.model.log_prob(mu, mb.action, self.env.robots.act_mask[mb.obs.robot[self.cfg.burn_in:]])
+        return logp, value, mb.logp, mb.value
 
     def _update(self, ts: TrainState, batch: Batch):
         cfg = self.cfg
-        lr = learning_rate(ts.iteration, cfg.num_iters, cfg.lr, cfg.warmup_iters)
+        lr = learning_rate(ts.iteration, self.num_iters, cfg.lr, cfg.warmup_iters)
         opt_state = ts.opt_state._replace(hyperparams={**ts.opt_state.hyperparams, "learning_rate": lr})
         key, k_perm = jax.random.split(ts.key)
         n_windows = cfg.num_envs * self.num_windows
@@ -309,7 +305,7 @@ class Trainer:
         grad_fn = jax.value_and_grad(self._loss, has_aux=True)
         zero_info = LossInfo(*([jnp.float32(0.0)] * len(LossInfo._fields)))
 
-        def mb_step(c, mb_ids):
+        def mb_step(c: SGDCarry, mb_ids):
             params, opt, stopped, acc, applied, first_info = c
 
             def run(_):
@@ -326,9 +322,9 @@ class Trainer:
             params, opt, stop_now, info, ok = jax.lax.cond(stopped, skip, run, None)
             acc = jax.tree.map(lambda a, x: a + jnp.where(ok, x, 0.0), acc, info)
             first_info = jax.tree.map(lambda f, x: jnp.where(applied == 0, x, f), first_info, info)
-            return (params, opt, stopped | stop_now, acc, applied + ok.astype(jnp.int32), first_info), None
+            return SGDCarry(params, opt, stopped | stop_now, acc, applied + ok.astype(jnp.int32), first_info), None
 
-        c0 = (ts.params, opt_state, jnp.asarray(False), zero_info, jnp.int32(0), zero_info)
+        c0 = SGDCarry(ts.params, opt_state, jnp.asarray(False), zero_info, jnp.int32(0), zero_info)
         (params, opt_state, _, acc, applied, first_info), _ = jax.lax.scan(mb_step, c0, ids)
         n = jnp.maximum(applied, 1).astype(jnp.float32)
         metrics = {f"{k}": v / n for k, v in acc._asdict().items()}

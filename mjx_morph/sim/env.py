@@ -34,47 +34,37 @@ cone, Newton solver, Euler integrator, parent-child filtering, no exclude pairs.
 from __future__ import annotations
 
 import dataclasses
-from typing import Any, NamedTuple, Sequence
+from typing import Any, List, NamedTuple, Optional, Sequence
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 from mujoco import mjx
 
-from ..unimal.morphology import MAX_NODES, Morphology
+from ..layout import NUM_ACTIONS, Obs, Robots, context_mask
+from ..unimal.morphology import Morphology
 from . import contact, cpu_linalg, observation, reward, sampling, terrain
-from .model import Robots, StackedModel, Tables, build_stacked_model
+from .model import StackedModel, Tables, build_stacked_model
 from .padding import SolverOptions, WorldSpec
 from .tasks import EPISODE_LENGTH, FRAME_SKIP, RESET_NOISE, Task, get_task
 
 
-@dataclasses.dataclass(frozen=True)
+@dataclasses.dataclass
 class EnvConfig:
-    task: str = "ft"
+    """The task and the simulator's options: the one home of their defaults (`experiments.run env=<task>
+    env.<key>=...`). Deviations from MetaMorph are documented at the top of this module."""
+    task: str = "ft"                # ft | incline | csr | obstacle (sim/tasks.py)
     iterations: int = 5             # solver iterations (MuJoCo default 100)
     ls_iterations: int = 8          # line-search iterations (MuJoCo default 50)
     self_collision: bool = False    # MetaMorph: on
-    episode_length: int = EPISODE_LENGTH
+    episode_length: int = EPISODE_LENGTH   # control steps (20 s)
     substeps: int = FRAME_SKIP
     reset_noise: float = RESET_NOISE
     max_qvel: float = 1.0e3         # instability threshold on any |qvel| entry
     unroll_substeps: bool = False   # Python-unroll the substeps instead of a fori_loop
     c_contact_frames: bool = True   # plane-capsule contact frames as MuJoCo C (contact.py)
-
-    @classmethod
-    def from_cfg(cls, cfg: Any) -> "EnvConfig":
-        """From a Hydra `env` node (name + optional sim keys)."""
-        get = (lambda k, d: cfg.get(k, d)) if hasattr(cfg, "get") else (lambda k, d: getattr(cfg, k, d))
-        return cls(task=get("name", "ft"), iterations=int(get("solver_iterations", 5)),
-                   ls_iterations=int(get("ls_iterations", 8)), self_collision=bool(get("self_collision", False)),
-                   episode_length=int(get("episode_length", EPISODE_LENGTH)))
-
-
-class Obs(NamedTuple):
-    proprio: jax.Array      # (12, 52) float32 raw (padded tokens 0)
-    prev_action: jax.Array  # (24,) float32 the executed (masked, clamped) previous action; 0 at episode start
-    hfield: jax.Array       # (1410,) float32 for csr/obstacle, (0,) otherwise
-    robot: jax.Array        # () int32 index into the per-robot arrays
+    context_features: Optional[List[str]] = None   # None: all context features; else only these groups of
+                                                   # mjx_morph.layout.CONTEXT_GROUPS, the others zeroed
 
 
 class Episode(NamedTuple):
@@ -125,6 +115,8 @@ class Env:
         self.patch = terrain.patch_size(self.morphologies) if self.task.uses_hfield else 0
         self.sm: StackedModel = build_stacked_model(self.morphologies, self._world(), opts)
         self.robots: Robots = self.sm.policy
+        if config.context_features is not None:
+            self.robots = self.robots._replace(context=self.robots.context * context_mask(config.context_features))
         self.tables: Tables = self.sm.tables
         self.num_robots = len(self.morphologies)
         mm = self.sm.mj_models[0]
@@ -182,7 +174,7 @@ class Env:
         qpos = m.qpos0 + jax.random.uniform(kq, m.qpos0.shape, minval=-s, maxval=s) * tab.real_qpos
         qvel = jax.random.uniform(kv, (m.nv,), minval=-s, maxval=s) * tab.real_dof
         ts = terrain.generate(self.task.terrain, kt)
-        obs, torso_x = self._observe(robot, qpos, qvel, ts, jnp.zeros((2 * MAX_NODES,), jnp.float32))
+        obs, torso_x = self._observe(robot, qpos, qvel, ts, jnp.zeros((NUM_ACTIONS,), jnp.float32))
         return EnvState(qpos=qpos, qvel=qvel, qacc_warmstart=jnp.zeros_like(qvel), robot=robot, t=jnp.int32(0),
                         key=knext, torso_x=torso_x, terrain=ts, obs=obs, reward=jnp.float32(0.0),
                         done=jnp.asarray(False), truncated=jnp.asarray(False), ep_return=jnp.float32(0.0),
@@ -203,14 +195,14 @@ class Env:
         computed from that state and an axis-aligned height map, as right after a reset."""
         robot = jnp.asarray(robot, jnp.int32)
         ts = terrain.NoTerrain() if terrain_state is None else terrain_state
-        pa = jnp.zeros((2 * MAX_NODES,), jnp.float32) if prev_action is None else prev_action
+        pa = jnp.zeros((NUM_ACTIONS,), jnp.float32) if prev_action is None else prev_action
         return self._observe(robot, jnp.asarray(qpos, jnp.float32), jnp.asarray(qvel, jnp.float32), ts, pa)[0]
 
     def step(self, state: EnvState, action: jax.Array, sampler: sampling.SamplerState | None = None) -> EnvState:
         robot = state.robot
         tab, pol = self._row(self.tables, robot), self._row(self.robots, robot)
         m = self._model(robot, state.terrain, state.qpos)
-        raw = jnp.asarray(action, jnp.float32).reshape(2 * MAX_NODES)
+        raw = jnp.asarray(action, jnp.float32).reshape(NUM_ACTIONS)
         act = jnp.where(pol.act_mask, jnp.clip(raw, -1.0, 1.0), 0.0)
         ctrl = jnp.concatenate([act, jnp.zeros((1,), jnp.float32)])[tab.ctrl_src]
         d = self._template.replace(qpos=state.qpos, qvel=state.qvel, qacc_warmstart=state.qacc_warmstart,

@@ -30,17 +30,13 @@ import numpy as np
 from mujoco import mjx
 
 from ..unimal.mjcf import compile_model
-from ..unimal.morphology import MAX_NODES, Morphology
+from ..layout import CTX_DIM, NUM_ACTIONS, NUM_TOKENS, OBS_DIM, Robots
+from ..unimal.morphology import Morphology
 from . import padding
 from .padding import SolverOptions, WorldSpec
 from .supertree import SharedTree, build_shared_tree
 
 INERT_MARGIN = -1.0e4
-N_FEAT = 52
-N_CTX = 35
-# feature layout of one token (spec/environments.md §6): limb part 30, then 2 joint slots of 11
-TIME_VARYING = tuple(range(13)) + (30, 31, 41, 42)
-STATIC = tuple(i for i in range(N_FEAT) if i not in TIME_VARYING)   # the 35 context features, in order
 
 # ModuMorph's fixed context bounds (metamorph/envs/modules/agent.py), in the order of the 35 static features
 _LIMB_BOUNDS = [
@@ -72,14 +68,6 @@ JOINT_LO, JOINT_HI = _bounds(_JOINT_BOUNDS)  # 9
 def normalise_context(x: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     """ModuMorph's map: -1*(lo != hi) + 2 (x - lo) / (hi - lo + 1e-8)."""
     return -1.0 * (lo != hi) + 2.0 * (x - lo) / (hi - lo + 1e-8)
-
-
-class Robots(NamedTuple):
-    """Per-robot constants for the policy (robot axis first). Token t: 0 = torso, then the robot's limbs in the
-    MuJoCo body order of its own file; action entry 2t + k is token t's joint slot k (0 = x, 1 = y)."""
-    context: jax.Array     # (R, 12, 35) float32, normalised with ModuMorph's fixed bounds, padded tokens 0
-    node_mask: jax.Array   # (R, 12) bool, True = real token
-    act_mask: jax.Array    # (R, 24) bool, True = real actuator
 
 
 class Tables(NamedTuple):
@@ -121,12 +109,6 @@ class StackedModel:
         """The MJX model of one robot (a gather along the robot axis; vmap it over envs)."""
         return jax.tree_util.tree_map(lambda x, a: x if a is None else x[robot], self.model, self.axes,
                                       is_leaf=lambda x: x is None)
-
-    def size_summary(self) -> dict:
-        m0 = self.mj_models[0]
-        return {"robots": self.num_robots, "bodies": self.tree.num_slots, "limb_slots": self.tree.num_limb_slots,
-                "nq": int(m0.nq), "nv": int(m0.nv), "nu": int(m0.nu), "ngeom": int(m0.ngeom),
-                "max_robot_bodies": max(m.num_nodes for m in self.robots)}
 
 
 def _fix_static(mm: mujoco.MjModel) -> None:
@@ -220,7 +202,7 @@ def build_stacked_model(robots: Sequence[Morphology], world: WorldSpec = WorldSp
 def static_features(mm: mujoco.MjModel, body: int, joints: Sequence[int | None]) -> np.ndarray:
     """The 52 features of one token with the time-varying entries 0 (float64). `joints[k]` is the joint id in
     slot k or None. Reads the compiled model exactly as MetaMorph's agent.py does."""
-    f = np.zeros(N_FEAT)
+    f = np.zeros(OBS_DIM)
     g = mm.body_geomadr[body]
     f[13:16] = mm.body_pos[body]
     f[16:19] = mm.body_ipos[body]
@@ -256,22 +238,22 @@ def context_of(feat: np.ndarray, joints: Sequence[int | None]) -> np.ndarray:
 def _robot_constants(robots, tree: SharedTree, mjm) -> tuple[Robots, Tables]:
     R = len(robots)
     nu = mjm[0].nu
-    ctx = np.zeros((R, MAX_NODES, N_CTX), np.float32)
-    node_mask = np.zeros((R, MAX_NODES), bool)
-    act_mask = np.zeros((R, 2 * MAX_NODES), bool)
-    body_of_token = np.zeros((R, MAX_NODES), np.int32)
-    geom_of_token = np.zeros((R, MAX_NODES), np.int32)
-    qadr = np.full((R, 2 * MAX_NODES), 7, np.int32)
-    vadr = np.full((R, 2 * MAX_NODES), 6, np.int32)
+    ctx = np.zeros((R, NUM_TOKENS, CTX_DIM), np.float32)
+    node_mask = np.zeros((R, NUM_TOKENS), bool)
+    act_mask = np.zeros((R, NUM_ACTIONS), bool)
+    body_of_token = np.zeros((R, NUM_TOKENS), np.int32)
+    geom_of_token = np.zeros((R, NUM_TOKENS), np.int32)
+    qadr = np.full((R, NUM_ACTIONS), 7, np.int32)
+    vadr = np.full((R, NUM_ACTIONS), 6, np.int32)
     ctrl_src = np.zeros((R, nu), np.int32)
     real_qpos = np.zeros((R, mjm[0].nq), bool)
     real_dof = np.zeros((R, mjm[0].nv), bool)
-    static = np.zeros((R, MAX_NODES, N_FEAT), np.float32)
-    jlo = np.zeros((R, 2 * MAX_NODES), np.float32)
-    jspan = np.ones((R, 2 * MAX_NODES), np.float32)
+    static = np.zeros((R, NUM_TOKENS, OBS_DIM), np.float32)
+    jlo = np.zeros((R, NUM_ACTIONS), np.float32)
+    jspan = np.ones((R, NUM_ACTIONS), np.float32)
     orig_height = np.zeros(R, np.float32)
     for r, m in enumerate(robots):
-        t = padding.pad_tables(m, tree, r, MAX_NODES)
+        t = padding.pad_tables(m, tree, r, NUM_TOKENS)
         mm = mjm[r]
         node_mask[r] = t.node_mask
         act_mask[r] = t.act_mask

@@ -23,7 +23,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from .model import N_FEAT
+from ..layout import OBS_DIM
 
 
 def object_velocity(cvel: jax.Array, xpos: jax.Array, subtree_com: jax.Array) -> tuple[jax.Array, jax.Array]:
@@ -59,4 +59,4 @@ def mask_features(obs: jax.Array, node_mask: jax.Array, act_mask: jax.Array) -> 
     return obs
 
 
-assert N_FEAT == 52
+assert OBS_DIM == 52

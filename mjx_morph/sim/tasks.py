@@ -1,11 +1,16 @@
-"""The four UNIMAL tasks: constants of spec/environments.md §1-§3 in one table.
+"""The four UNIMAL tasks, each one record (`Task`) holding every fact of the task in one place.
 
-| task     | terrain (physics)                         | stand ratio | side limit | height map obs |
-|----------|-------------------------------------------|-------------|------------|----------------|
-| ft       | plane, top z = 1                          | 0.5         | none       | no             |
-| incline  | plane tilted -10 deg about y (uphill +x)  | 0.2         | abs(y) >= 19 | no           |
-| csr      | per-episode corridor, height-field patch  | 0.3         | abs(y) >= 19 | yes          |
-| obstacle | floor + walls + 50 boxes, height-field patch | 0.5      | abs(y) >= 19 | yes          |
+| task     | terrain (physics)                            | stand ratio | side limit   | height map | decoder  | return range |
+|----------|----------------------------------------------|-------------|--------------|------------|----------|--------------|
+| ft       | plane, top z = 1                             | 0.5         | none         | no         | []       | 52 / 5008    |
+| incline  | plane tilted -10 deg about y (uphill +x)     | 0.2         | abs(y) >= 19 | no         | []       | -74 / 3751   |
+| csr      | per-episode corridor, height-field patch     | 0.3         | abs(y) >= 19 | yes        | [64]     | 71 / 3000    |
+| obstacle | floor + walls + 50 boxes, height-field patch | 0.5         | abs(y) >= 19 | yes        | [64, 64] | 126 / 2403   |
+
+Reward: forward_weight * torso x-velocity (along the slope on the incline) - ctrl_cost_weight * sum(a^2) (`reward.py`).
+The decoder column is the hidden layers of the policy's per-limb decoder for the task (MetaMorph / ModuMorph task
+configs); the return range is the paper's per-task range of returns over robots, used to normalise returns
+((R - lo) / (hi - lo)) in evaluations and reports.
 
 Deviations from the original worlds (collected in the README):
 - ft: the 200 m x 200 m floor box is an infinite plane at z = 1 (the same surface wherever a robot can get in 20 s).
@@ -17,6 +22,8 @@ Deviations from the original worlds (collected in the README):
 from __future__ import annotations
 
 import dataclasses
+
+import numpy as np
 
 CONTROL_DT = 0.02
 FRAME_SKIP = 4
@@ -32,10 +39,17 @@ class Task:
     terrain: str                   # "plane", "incline", "corridor", "obstacles"
     stand_ratio: float             # ENV.STAND_HEIGHT_RATIO
     side_limit: float | None       # terminate when |y_torso| >= side_limit
-    hfield_obs: bool
+    hfield_obs: bool               # the 1410-value height map is part of the observation
+    decoder_dims: tuple[int, ...]  # hidden layers of the policy's per-limb decoder for this task
+    return_range: tuple[float, float]   # the paper's (min, max) return over robots (normalised returns)
     incline_deg: float = 0.0       # TERRAIN.INCLINE_ANGLE magnitude (uphill along +x)
     forward_weight: float = 1.0    # ENV.FORWARD_REWARD_WEIGHT
     ctrl_cost_weight: float = 0.0  # ENV.CTRL_COST_WEIGHT
+
+    def normalised(self, ret):
+        """(R - min) / (max - min) with the task's return range (float64 numpy)."""
+        lo, hi = self.return_range
+        return (np.asarray(ret, np.float64) - lo) / (hi - lo)
 
     @property
     def uses_hfield(self) -> bool:
@@ -43,10 +57,10 @@ class Task:
 
 
 TASKS = {
-    "ft": Task("ft", "plane", 0.5, None, False),
-    "incline": Task("incline", "incline", 0.2, 19.0, False, incline_deg=10.0),
-    "csr": Task("csr", "corridor", 0.3, 19.0, True),
-    "obstacle": Task("obstacle", "obstacles", 0.5, 19.0, True),
+    "ft": Task("ft", "plane", 0.5, None, False, (), (52.0, 5008.0)),
+    "incline": Task("incline", "incline", 0.2, 19.0, False, (), (-74.0, 3751.0), incline_deg=10.0),
+    "csr": Task("csr", "corridor", 0.3, 19.0, True, (64,), (71.0, 3000.0)),
+    "obstacle": Task("obstacle", "obstacles", 0.5, 19.0, True, (64, 64), (126.0, 2403.0)),
 }
 
 

@@ -1,0 +1,46 @@
+"""The algorithm's settings: one dataclass, the one home of every PPO default (`experiments.run ppo.<key>=...`)."""
+from __future__ import annotations
+
+import dataclasses
+
+
+@dataclasses.dataclass
+class PPOConfig:
+    num_envs: int = 1024            # parallel envs
+    rollout_len: int = 80           # control steps per env per iteration (a multiple of the window);
+                                    # 1024 x 80 = the paper's 81,920 transitions (32 envs x 2560 steps) per iteration
+    window: int = 80                # training window of recurrent models (feed-forward models: 1)
+    burn_in: int = 20               # burn-in prefix of each window (feed-forward models: 0)
+    minibatch_size: int = 5120      # transitions per minibatch (= 64 windows of 80)
+    epochs: int = 8
+    gamma: float = 0.99
+    lam: float = 0.95
+    clip_eps: float = 0.2
+    value_coef: float = 0.5
+    entropy_coef: float = 0.0
+    lr: float = 3e-4
+    warmup_iters: int = 5
+    adam_eps: float = 1e-5
+    max_grad_norm: float = 0.5
+    kl_threshold: float = 0.05      # approximate-KL early stop (0.05 = MetaMorph's KL_TARGET_COEF 5; the paper also uses 0.03)
+    sampling: str = "balanced"      # robot sampling at resets: balanced | uniform
+
+    @property
+    def steps_per_iter(self) -> int:
+        return self.num_envs * self.rollout_len
+
+    def for_model(self, recurrent: bool) -> "PPOConfig":
+        """Feed-forward models train on single transitions (W = 1, B = 0), as the original PPO."""
+        return self if recurrent else dataclasses.replace(self, window=1, burn_in=0)
+
+    def check(self) -> None:
+        if self.rollout_len % self.window:
+            raise ValueError(f"ppo.rollout_len={self.rollout_len} must be a multiple of ppo.window={self.window}")
+        if self.minibatch_size % self.window:
+            raise ValueError(f"ppo.minibatch_size={self.minibatch_size} must be a multiple of ppo.window={self.window}")
+        if self.burn_in > self.rollout_len:
+            raise ValueError(f"ppo.burn_in={self.burn_in} exceeds ppo.rollout_len={self.rollout_len}")
+        windows = self.num_envs * self.rollout_len // self.window
+        if windows < self.minibatch_size // self.window:
+            raise ValueError(f"a rollout has {windows} windows, fewer than one minibatch "
+                             f"({self.minibatch_size // self.window} windows): lower ppo.minibatch_size")

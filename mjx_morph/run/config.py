@@ -1,0 +1,154 @@
+"""The schema of a training run: `RunConfig`, built from the dataclasses of the stages it configures.
+
+    cfg = compose_run_config(["env=csr", "arch=modumorph", "ppo.kl_threshold=0.03"])   # a typed RunConfig
+    cfg = read_run_config("runs/ft-rmomo-s0/config.yaml")                             # a run's saved config
+
+Every key has one home, and its default is stated there only:
+
+| keys              | home                                             |
+|-------------------|--------------------------------------------------|
+| `env.*`           | `mjx_morph.sim.env.EnvConfig` (task, simulator options, context features) |
+| `model.*`         | `mjx_morph.nets.zoo.ModelOptions` (overrides of the architecture's sizes and flags) |
+| `ppo.*`           | `mjx_morph.ppo.config.PPOConfig`                 |
+| everything else   | `RunConfig` below (robots, seed, steps, run directory, loop options) |
+
+`env=<task>` picks a task (Hydra config group `env`, one option per task of `mjx_morph.sim.tasks.TASKS`);
+`preset=<name>` applies one of `experiments/conf/preset/*.yaml`, YAML files that only override keys of this schema.
+Unknown keys and values of the wrong type are refused with one line naming the key and the expected type
+(`ConfigError`).
+"""
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+from typing import Any, Iterable, Optional
+
+from hydra import compose as hydra_compose
+from hydra import initialize_config_dir
+from hydra.core.config_store import ConfigStore
+from hydra.errors import HydraException
+from omegaconf import OmegaConf
+from omegaconf.errors import OmegaConfBaseException
+
+from ..nets.zoo import ModelOptions
+from ..ppo.config import PPOConfig
+from ..sim.env import EnvConfig
+from ..sim.tasks import TASKS
+
+#: Hydra's config folder of the command-line tools (config.yaml with the defaults list, presets, studies)
+CONF_DIR = Path(__file__).resolve().parents[2] / "experiments" / "conf"
+
+
+@dataclasses.dataclass
+class RunConfig:
+    """One training run (`python -m experiments.run key=value ...`)."""
+    env: EnvConfig = dataclasses.field(default_factory=EnvConfig)
+    arch: str = "rmomo"                 # one of mjx_morph.nets.ARCHS
+    model: ModelOptions = dataclasses.field(default_factory=ModelOptions)
+    ppo: PPOConfig = dataclasses.field(default_factory=PPOConfig)
+    seed: int = 0
+    robots: Optional[str] = None        # robot set or path; None: unimal100/train when the original robots exist,
+                                        # else the shipped gen/train
+    robots_root: Optional[str] = None   # folder of the original robots (None: $MJX_MORPH_UNIMALS, else
+                                        # ../shared/unimals_100 beside the project)
+    num_robots: Optional[int] = None    # use only the first N robots of the set (training-set-size runs)
+    total_steps: int = 100_000_000      # env steps (control steps summed over envs); the schedule's horizon
+    run_dir: Optional[str] = None       # None: runs/<task>-<arch>-s<seed>; rerun with the same run_dir to resume
+    stop_after: Optional[int] = None    # end this invocation after N iterations (with a checkpoint)
+    time_limit_min: Optional[float] = None   # end this invocation after about N minutes (with a checkpoint)
+    checkpoint_every: int = 50          # iterations between Orbax checkpoints (and always at the end)
+    phase_timing: bool = True           # rollout and update as two jitted calls, to log env steps/s per phase
+    fast_compile: bool = False          # XLA CPU optimisations off: faster compiles, slower steps (tests, smoke)
+    progress: bool = True               # progress bar with steps/s and ETA
+    compile_cache: Optional[str] = "${oc.env:MJX_MORPH_XLA_CACHE,'~/.cache/mjx_morph/xla'}"
+                                        # compiled programs kept across invocations; None: off
+
+    def default_run_dir(self) -> Path:
+        return Path("runs") / f"{self.env.task}-{self.arch}-s{self.seed}"
+
+
+#: keys that shape the train state: a resume must agree on them (dotted keys or prefixes)
+IDENTITY = ("env.task", "env.context_features", "arch", "model", "robots", "robots_root", "num_robots", "seed",
+            "ppo.num_envs", "ppo.rollout_len", "ppo.window", "ppo.burn_in", "ppo.minibatch_size", "ppo.sampling")
+
+
+class ConfigError(ValueError):
+    """A config key that does not exist, or a value of the wrong type (one line)."""
+
+
+def register(name: str, schema: type) -> None:
+    """Make a schema dataclass available to Hydra's defaults lists under `name`."""
+    ConfigStore.instance().store(name=name, node=schema)
+
+
+def _register_run_schema() -> None:
+    cs = ConfigStore.instance()
+    cs.store(name="run_schema", node=RunConfig)
+    for task in TASKS:
+        cs.store(group="env", name=task, node=EnvConfig(task=task))
+
+
+_register_run_schema()
+
+
+def config_error(e: BaseException, overrides: Iterable[str] = ()) -> ConfigError:
+    """One-line `ConfigError` for an exception of Hydra's composition or OmegaConf's validation."""
+    cause = e
+    while cause.__cause__ is not None and not isinstance(cause, OmegaConfBaseException):
+        cause = cause.__cause__
+    key = getattr(cause, "full_key", None)
+    msg = str(cause).strip().splitlines()[0] if str(cause).strip() else type(cause).__name__
+    given = next((o for o in overrides if key and o.lstrip("+~").split("=", 1)[0] == key), None)
+    if "not in struct" in str(cause) or "Could not override" in str(e) or "Could not append" in str(e) or \
+            type(cause).__name__ in ("ConfigAttributeError", "ConfigKeyError"):
+        return ConfigError(f"unknown config key {key!r}" + (f" (in {given!r})" if given else ""))
+    if key:
+        return ConfigError(f"{given or key}: {msg}")
+    first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+    return ConfigError(f"{first}: {msg}" if msg not in first else first)
+
+
+def compose(config_name: str, overrides: Iterable[str] = (), schema: type = RunConfig,
+            config_dir: Path = CONF_DIR) -> Any:
+    """Compose `config_dir/config_name.yaml` with command-line `overrides` into an instance of `schema`."""
+    overrides = list(overrides)
+    try:
+        with initialize_config_dir(config_dir=str(config_dir), version_base=None):
+            cfg = hydra_compose(config_name=config_name, overrides=overrides)
+        return to_schema(cfg, schema)
+    except (HydraException, OmegaConfBaseException) as e:
+        raise config_error(e, overrides) from None
+
+
+def compose_run_config(overrides: Iterable[str] = ()) -> RunConfig:
+    return compose("config", overrides)
+
+
+def to_schema(cfg: Any, schema: type = RunConfig) -> Any:
+    """A `schema` instance from a composed DictConfig, a plain dict or an instance (validated, resolved)."""
+    if isinstance(cfg, schema):
+        return cfg
+    try:
+        node = OmegaConf.merge(OmegaConf.structured(schema), cfg)
+        return OmegaConf.to_object(node)
+    except OmegaConfBaseException as e:
+        raise config_error(e) from None
+
+
+def to_dict(cfg: Any) -> dict:
+    """A plain, resolved dict of a schema instance (what a run directory's config.yaml holds)."""
+    return OmegaConf.to_container(OmegaConf.structured(cfg), resolve=True)
+
+
+def read_run_config(path: str | Path) -> RunConfig:
+    """The RunConfig saved in a run directory's config.yaml; a file that does not fit the schema gives a
+    ConfigError naming the file."""
+    path = Path(path)
+    try:
+        data = OmegaConf.load(path)
+    except Exception as e:  # noqa: BLE001 - yaml and io errors alike
+        raise ConfigError(f"{path}: unreadable config ({type(e).__name__}: {e})") from None
+    try:
+        return to_schema(data)
+    except ConfigError as e:
+        raise ConfigError(f"{path}: {e}") from None
