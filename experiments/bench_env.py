@@ -4,28 +4,55 @@
     python -m experiments.bench_env env=csr num_envs=4096 steps=50
     python -m experiments.bench_env mode=physics                    # the 4 MJX substeps only
     python -m experiments.bench_env 'cases=[{env: ft},{env: csr},{env: ft, self_collision: true}]'
+    python -m experiments.bench_env env=csr env.iterations=100 env.ls_iterations=50
 
 Each case builds the env, compiles one `lax.scan` of `steps` control steps over `num_envs` envs (random N(0, 0.9)
 actions, balanced sampler, automatic resets), runs it `repeats` times and prints one JSON line: control steps per
 second (num_envs * steps / median wall time), compile time, the compiled program's memory (arguments, outputs and
-temporaries) and the device's peak memory so far. Case keys: env (task name), self_collision, solver_iterations,
-ls_iterations, num_envs, steps, num_robots, group, mode, unroll_substeps, robots.
+temporaries) and the device's peak memory so far. A case is a dict of overrides: `env` (a task name), any key of
+the env's options (`self_collision`, `iterations`, `ls_iterations`, ...: mjx_morph.sim.env.EnvConfig), or any other
+key of `BenchEnvConfig` below.
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import statistics
+import sys
 import time
+from typing import Any, Dict, List, Optional
 
-import hydra
 import jax
 import jax.numpy as jnp
-from omegaconf import DictConfig, OmegaConf
+from mjx_morph.run import register
+from mjx_morph.sim import sampling
+from mjx_morph.sim.env import EnvConfig, make_env
+from mjx_morph.sim.supertree import group_robots
+from mjx_morph.unimal.sets import default_train_set, load_set
+from mujoco import mjx  # noqa: I001 - after mjx_morph, whose import silences MJX's missing-Warp message
+
+from . import cli
+
+
+@dataclasses.dataclass
+class BenchEnvConfig:
+    env: EnvConfig = dataclasses.field(default_factory=EnvConfig)   # task and simulator options (env=<task>)
+    robots: Optional[str] = None        # robot set or path; None: unimal100/train when present, else gen/train
+    robots_root: Optional[str] = None
+    num_robots: Optional[int] = None    # only the first N robots of the set
+    group: Optional[str] = None         # "k/n": only group k of n topology groups (sim.supertree.group_robots)
+    num_envs: int = 4096
+    steps: int = 100                    # control steps per timed rollout (one jitted lax.scan)
+    repeats: int = 3                    # timed rollouts; the median is reported
+    seed: int = 0
+    mode: str = "env"                   # env: the full env step; physics: only the MJX substeps of the stacked model
+    cases: Optional[List[Dict[str, Any]]] = None   # override dicts, run one after the other (one JSON line each)
+
+
+register("bench_env_schema", BenchEnvConfig)
 
 
 def _robots(robots: str | None, robots_root: str | None, num_robots: int | None, group: str | None):
-    from mjx_morph.sim.supertree import group_robots
-    from mjx_morph.unimal.sets import default_train_set, load_set
     name = robots or default_train_set(robots_root)
     rs = list(load_set(name, robots_root).robots)
     if num_robots:
@@ -37,15 +64,9 @@ def _robots(robots: str | None, robots_root: str | None, num_robots: int | None,
 
 
 def run_case(c: dict) -> dict:
-    from mujoco import mjx
-
-    from mjx_morph.sim import sampling
-    from mjx_morph.sim.env import EnvConfig, make_env
-
+    """One case: `c` holds the keys of BenchEnvConfig with `env` an EnvConfig."""
     name, rs = _robots(c.get("robots"), c.get("robots_root"), c.get("num_robots"), c.get("group"))
-    config = EnvConfig(task=c["env"], iterations=int(c["solver_iterations"]), ls_iterations=int(c["ls_iterations"]),
-                       self_collision=bool(c["self_collision"]), episode_length=int(c["episode_length"]),
-                       unroll_substeps=bool(c["unroll_substeps"]))
+    config = c["env"]
     t0 = time.perf_counter()
     env = make_env(rs, config=config)
     build_s = time.perf_counter() - t0
@@ -104,7 +125,7 @@ def run_case(c: dict) -> dict:
     dev = jax.devices()[0]
     stats = dev.memory_stats() or {}
     res = {
-        "env": c["env"], "mode": c["mode"], "robots": name, "num_robots": env.num_robots,
+        "env": config.task, "mode": c["mode"], "robots": name, "num_robots": env.num_robots,
         "tree_bodies": env.sm.tree.num_slots, "nv": int(env.sm.mj_models[0].nv), "num_envs": n, "steps": steps,
         "solver_iterations": config.iterations, "ls_iterations": config.ls_iterations,
         "self_collision": config.self_collision, "group": c.get("group"),
@@ -121,20 +142,32 @@ def run_case(c: dict) -> dict:
     return res
 
 
-@hydra.main(version_base=None, config_path="conf", config_name="bench_env")
-def main(cfg: DictConfig) -> None:
-    base = OmegaConf.to_container(cfg, resolve=True)
-    envcfg = base.pop("env")
-    cases = base.pop("cases") or [{}]
-    for case in cases:
-        c = dict(base)
-        c.update({"env": envcfg["name"], "solver_iterations": envcfg.get("solver_iterations", 5),
-                  "ls_iterations": envcfg.get("ls_iterations", 8),
-                  "self_collision": envcfg.get("self_collision", False),
-                  "episode_length": envcfg.get("episode_length", 1000)})
-        c.update(case)
-        print(json.dumps(run_case(c)), flush=True)
+def case_config(base: BenchEnvConfig, case: dict) -> dict:
+    """The settings of one case: `base` with the case's overrides (`env` names the task; EnvConfig keys go to the
+    env's options)."""
+    case = dict(case)
+    env_fields = {f.name for f in dataclasses.fields(EnvConfig)}
+    env_over = {k: case.pop(k) for k in list(case) if k in env_fields}
+    if "env" in case:
+        env_over["task"] = case.pop("env")
+    known = {f.name for f in dataclasses.fields(BenchEnvConfig)} - {"cases", "env"}
+    unknown = sorted(set(case) - known)
+    if unknown:
+        raise ValueError(f"cases: unknown key(s) {unknown}; expected env, EnvConfig keys or {sorted(known)}")
+    c = {f.name: getattr(base, f.name) for f in dataclasses.fields(BenchEnvConfig) if f.name != "cases"}
+    c.update(case)
+    c["env"] = dataclasses.replace(base.env, **env_over)
+    return c
+
+
+def bench(cfg: BenchEnvConfig) -> None:
+    for case in cfg.cases or [{}]:
+        print(json.dumps(run_case(case_config(cfg, case))), flush=True)
+
+
+def main(argv=None) -> int:
+    return cli.main(bench, "bench_env", BenchEnvConfig, __doc__, argv)
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

@@ -7,15 +7,28 @@ jitted calls, then (fused=true) the same number as the single fused jitted itera
 """
 from __future__ import annotations
 
+import dataclasses
 import json
+import sys
 import time
+from typing import Optional
 
-import hydra
 import jax
 import numpy as np
-from omegaconf import DictConfig, OmegaConf
 
-from mjx_morph.ppo.loop import build
+from mjx_morph.run import RunConfig, build, register
+
+from . import cli
+
+
+@dataclasses.dataclass
+class BenchTrainConfig(RunConfig):
+    bench_iters: int = 4                    # timed iterations per phase, after one warm-up iteration (compilation)
+    fused: bool = True                      # also time the fused one-jit iteration
+    compile_cache: Optional[str] = None     # benchmarks measure compilation: never from the cache
+
+
+register("bench_train_schema", BenchTrainConfig)
 
 
 def _memory_gb() -> float:
@@ -23,15 +36,14 @@ def _memory_gb() -> float:
     return stats.get("peak_bytes_in_use", float("nan")) / 1e9
 
 
-@hydra.main(config_path="conf", config_name="bench_train", version_base=None)
-def main(cfg: DictConfig) -> None:
-    plain = OmegaConf.to_container(cfg, resolve=True)
+def bench(cfg: BenchTrainConfig) -> None:
     t0 = time.perf_counter()
-    env, model, trainer, robots = build(plain)
+    exp = build(cfg)
+    env, model, trainer, robots = exp.env, exp.model, exp.trainer, exp.robot_set
     build_s = time.perf_counter() - t0
     pc = trainer.cfg
     t0 = time.perf_counter()
-    ts = jax.block_until_ready(trainer.init(jax.random.PRNGKey(int(plain["seed"]))))
+    ts = jax.block_until_ready(trainer.init(jax.random.PRNGKey(cfg.seed)))
     init_s = time.perf_counter() - t0
 
     def one_iteration(ts):
@@ -45,25 +57,25 @@ def main(cfg: DictConfig) -> None:
 
     ts, _, compile_rollout, compile_update = one_iteration(ts)  # the first call compiles both phases
     roll, upd, epochs = [], [], []
-    for _ in range(int(plain["bench_iters"])):
+    for _ in range(cfg.bench_iters):
         ts, m, r, u = one_iteration(ts)
         roll.append(r)
         upd.append(u)
         epochs.append(float(m["epochs_run"]))
-    out = {"arch": model.arch, "env": plain["env"]["name"], "robots": robots, "num_robots": env.num_robots,
+    out = {"arch": model.arch, "env": cfg.env.task, "robots": robots, "num_robots": env.num_robots,
            "device": jax.devices()[0].device_kind, "num_envs": pc.num_envs, "rollout_len": pc.rollout_len,
            "steps_per_iter": pc.steps_per_iter, "params": model.num_params(),
            "rollout_sps": pc.steps_per_iter / np.median(roll), "update_sps": pc.steps_per_iter / np.median(upd),
            "end_to_end_sps": pc.steps_per_iter / (np.median(roll) + np.median(upd)),
            "epochs_run_mean": float(np.mean(epochs)), "update_s_per_epoch": float(np.median(upd)) / max(np.mean(epochs), 1e-9),
            "compile_s": {"build": build_s, "init": init_s, "rollout": compile_rollout, "update": compile_update}}
-    if plain.get("fused", True):
+    if cfg.fused:
         t0 = time.perf_counter()
         ts, _ = trainer.iteration(ts)
         jax.block_until_ready(ts.params)
         out["compile_s"]["fused"] = time.perf_counter() - t0
         times = []
-        for _ in range(int(plain["bench_iters"])):
+        for _ in range(cfg.bench_iters):
             t0 = time.perf_counter()
             ts, m = trainer.iteration(ts)
             jax.block_until_ready(ts.params)
@@ -74,5 +86,9 @@ def main(cfg: DictConfig) -> None:
     print(json.dumps(out), flush=True)
 
 
+def main(argv=None) -> int:
+    return cli.main(bench, "bench_train", BenchTrainConfig, __doc__, argv)
+
+
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

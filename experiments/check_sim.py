@@ -1,41 +1,54 @@
 """Fidelity check of the padded, stacked MJX simulation against each robot alone in MuJoCo C.
 
     python -m experiments.check_sim unimal100/train                 # default solver settings (5 / 8)
-    python -m experiments.check_sim unimal100/test --defaults       # MuJoCo's defaults (100 / 50) too
-    python -m experiments.check_sim gen/train --iterations 100 --ls-iterations 50 --steps 25
+    python -m experiments.check_sim unimal100/test mujoco_defaults=true   # MuJoCo's defaults (100 / 50) too
+    python -m experiments.check_sim gen/train iterations=100 ls_iterations=50 steps=25
 
 Prints the worst body-position error (m) per robot over `--steps` control steps (same start state and actions in
 both, see mjx_morph/sim/fidelity.py) and exits 1 when any robot is over the tolerance (1e-3 m by default).
 """
 from __future__ import annotations
 
-import argparse
+import dataclasses
 import sys
 import time
 
+from omegaconf import MISSING
+
+from mjx_morph.run import register
 from mjx_morph.sim import fidelity
+from mjx_morph.sim.env import EnvConfig
 from mjx_morph.sim.padding import SolverOptions
 from mjx_morph.sim.supertree import build_shared_tree
 from mjx_morph.unimal.sets import load_set
 
+from . import cli
 
-def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    p.add_argument("set", help="robot set name or path (unimal100/train, gen/train, a folder, ...)")
-    p.add_argument("--iterations", type=int, default=5)
-    p.add_argument("--ls-iterations", type=int, default=8)
-    p.add_argument("--defaults", action="store_true", help="also check at MuJoCo's defaults (100 / 50)")
-    p.add_argument("--self-collision", action="store_true")
-    p.add_argument("--steps", type=int, default=25)
-    p.add_argument("--tolerance", type=float, default=fidelity.TOLERANCE)
-    p.add_argument("--seed", type=int, default=0)
-    a = p.parse_args(argv)
+_ENV = EnvConfig()
+
+
+@dataclasses.dataclass
+class CheckSimConfig:
+    set: str = MISSING                       # robot set name or path (unimal100/train, gen/train, a folder, ...)
+    iterations: int = _ENV.iterations        # solver iterations (the env's default)
+    ls_iterations: int = _ENV.ls_iterations  # line-search iterations (the env's default)
+    mujoco_defaults: bool = False            # also check at MuJoCo's defaults (100 / 50)
+    self_collision: bool = _ENV.self_collision
+    steps: int = 25                          # control steps compared
+    tolerance: float = fidelity.TOLERANCE    # m; robots over it make the exit status 1
+    seed: int = 0
+
+
+register("check_sim_schema", CheckSimConfig)
+
+
+def check(a: CheckSimConfig) -> None:
     rs = load_set(a.set)
     tree = build_shared_tree(rs.robots)
     print(f"# {rs.name}: shared tree of {tree.num_slots} bodies (nv {6 + 2 * tree.num_limb_slots}) "
           f"for {len(rs)} robots of at most {max(m.num_nodes for m in rs.robots)} bodies")
     settings = [(a.iterations, a.ls_iterations)]
-    if a.defaults and (100, 50) not in settings:
+    if a.mujoco_defaults and (100, 50) not in settings:
         settings.append((100, 50))
     bad = 0
     for it, ls in settings:
@@ -52,7 +65,12 @@ def main(argv: list[str] | None = None) -> int:
         over = [r for r in res if r.error > a.tolerance]
         print(f"# worst {worst.error:.2e} m ({worst.name}); {len(over)} over {a.tolerance:g} m")
         bad += len(over)
-    return 1 if bad else 0
+    if bad:
+        raise SystemExit(1)
+
+
+def main(argv=None) -> int:
+    return cli.main(check, "check_sim_schema", CheckSimConfig, __doc__, argv, positional="set")
 
 
 if __name__ == "__main__":

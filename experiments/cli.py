@@ -32,13 +32,16 @@ def guarded(fn: Callable[[], Any]) -> int:
 
 
 def main(run: Callable[[Any], Any], config_name: str, schema: type, doc: str | None = None,
-         argv: Sequence[str] | None = None) -> int:
+         argv: Sequence[str] | None = None, positional: str | None = None) -> int:
     """Compose `config_name` (a YAML file of experiments/conf or a registered schema) with `argv` as `key=value`
-    overrides into a `schema` instance, turn on its compile cache if it has one, and call `run(cfg)`."""
+    overrides into a `schema` instance, turn on its compile cache if it has one, and call `run(cfg)`.
+    `positional`: the key that a first argument without `=` sets (`check_sim unimal100/train`)."""
     argv = list(sys.argv[1:] if argv is None else argv)
+    if positional and argv and "=" not in argv[0] and not argv[0].startswith("-"):
+        argv[0] = f"{positional}={argv[0]}"
     if argv and argv[0] in ("-h", "--help"):
         print((doc or "").strip() + "\n\nKeys and defaults (override with key=value):\n")
-        print(OmegaConf.to_yaml(OmegaConf.structured(compose(config_name, (), schema))))
+        print(OmegaConf.to_yaml(OmegaConf.structured(schema)))
         return 0
 
     def go():

@@ -1,4 +1,4 @@
-"""Zero-shot evaluation of a trained run: `python -m experiments.evaluate run_dir=<dir> robots=<set>`.
+"""Zero-shot evaluation of a trained run: `python -m experiments.evaluate run_dir=<dir> [robots=<set or list>]`.
 
     python -m experiments.evaluate run_dir=runs/ft-rmomo-s0                      # train, test and variants
     python -m experiments.evaluate run_dir=runs/ft-rmomo-s0 robots=test episodes=8
@@ -8,30 +8,46 @@ Results go to <run_dir>/eval/<set>.csv (one row per episode) and <set>.json (sum
 """
 from __future__ import annotations
 
+import dataclasses
 import sys
+from typing import Any, Optional
 
-import hydra
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import MISSING
 
 from mjx_morph.eval.evaluate import evaluate_run
-from mjx_morph.ppo.loop import use_compile_cache
-from mjx_morph.ppo.run_dir import RunDirError
-from mjx_morph.unimal.errors import RobotError
+from mjx_morph.run import DEFAULT_COMPILE_CACHE, register
+
+from . import cli
 
 
-@hydra.main(config_path="conf", config_name="evaluate", version_base=None)
-def main(cfg: DictConfig) -> None:
-    c = OmegaConf.to_container(cfg, resolve=True)
-    sets = c["robots"] if isinstance(c["robots"], list) else [c["robots"]]
-    try:
-        use_compile_cache(c.get("compile_cache"))
-        evaluate_run(c["run_dir"], sets, episodes=int(c["episodes"]), seed=int(c["seed"]),
-                     zero_state_steps=int(c["zero_state_steps"]), step=c["step"], max_envs=c["max_envs"],
-                     episode_length=c["episode_length"], trace_steps=int(c["trace_steps"]))
-    except (RunDirError, RobotError, ValueError, FileNotFoundError) as e:
-        print(f"error: {e}", file=sys.stderr)
-        sys.exit(2)
+@dataclasses.dataclass
+class EvaluateConfig:
+    run_dir: str = MISSING              # a run directory of experiments.run
+    robots: Any = dataclasses.field(default_factory=lambda: ["train", "test", "variants"])
+                                        # a set or a list: train | val | test | variants[/<change>] | any set or path
+    episodes: int = 4                   # episodes per robot (episode k of robot r always has the same key)
+    seed: int = 0
+    step: Optional[int] = None          # checkpoint (iteration) to evaluate; None: the newest
+    zero_state_steps: int = 100         # recurrent models: also sweep with the state held at zero this many steps
+    trace_steps: int = 500              # the reward of each of the first N steps is kept (reward per timestep)
+    episode_length: Optional[int] = None   # None: the run's
+    max_envs: Optional[int] = None      # episodes per jitted call (None: a whole set, or one change type)
+    compile_cache: Optional[str] = DEFAULT_COMPILE_CACHE
+
+
+register("evaluate_schema", EvaluateConfig)
+
+
+def run(c: EvaluateConfig) -> None:
+    sets = c.robots if isinstance(c.robots, (list, tuple)) else [c.robots]
+    evaluate_run(c.run_dir, [str(s) for s in sets], episodes=c.episodes, seed=c.seed,
+                 zero_state_steps=c.zero_state_steps, step=c.step, max_envs=c.max_envs,
+                 episode_length=c.episode_length, trace_steps=c.trace_steps)
+
+
+def main(argv=None) -> int:
+    return cli.main(run, "evaluate_schema", EvaluateConfig, __doc__, argv)
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

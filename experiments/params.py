@@ -2,64 +2,56 @@
 
     python -m experiments.params env=ft                  # one task: ft, incline, csr or obstacle
     python -m experiments.params env=csr
-    python -m experiments.params all_envs=true           # every task in experiments/conf/env, one block each
+    python -m experiments.params all_envs=true           # every task of mjx_morph.sim.tasks, one block each
     python -m experiments.params archs=[rmemo,rmomo]     # a subset
 
 Output: one line per architecture, `<arch> <trainable parameters>`, optionally followed by a note in
 parentheses. With all_envs=true each task's block starts with a `# env=<name> ...` line. The count comes
-from the Flax parameters that `Model.init` creates (traced with jax.eval_shape, so no compute), built
-from `experiments/conf/arch/<arch>.yaml` and the task's env config (height map, decoder layers).
+from the Flax parameters that `Model.init` creates (traced with jax.eval_shape, so no compute), built as a
+training run builds it (`mjx_morph.run.make_model_for`: the architecture's defaults, the task's height map and
+decoder layers).
 
-Reference numbers: the paper's table (ft; incline has identical networks) and the spec's csr / obstacle
-numbers (spec/architecture.md §3). Where ours differ, it is because the original ModuMorph code also
+Reference numbers: the paper's table (ft; incline has identical networks) and the csr / obstacle counts of the
+original MetaMorph / ModuMorph code. Where ours differ, it is because the original ModuMorph code also
 builds a plain `limb_embed` and a plain decoder that its forward pass never calls; we do not create them,
 and the note gives the difference. Any other difference is reported as MISMATCH and the exit code is 1.
 """
 from __future__ import annotations
 
+import dataclasses
 import sys
-from pathlib import Path
+from typing import List, Optional
 
-import hydra
-from hydra import compose, initialize_config_dir
-from hydra.core.global_hydra import GlobalHydra
-from omegaconf import DictConfig, OmegaConf
+from mjx_morph.nets import ARCHS, Model
+from mjx_morph.run import RunConfig, make_model_for, register
+from mjx_morph.sim.env import EnvConfig
+from mjx_morph.sim.tasks import TASKS
 
-from mjx_morph.nets import ARCHS, Model, model_from_config
-
-CONF = Path(__file__).resolve().parent / "conf"
+from . import cli
 
 #: (env, arch) -> (reference count, where it comes from)
 REFERENCES: dict[tuple[str, str], tuple[int, str]] = {
     **{(env, arch): (n, "paper") for env in ("ft", "incline") for arch, n in
        (("metamorph", 3_312_515), ("rmemo", 3_568_259), ("modumorph", 5_232_774), ("rmomo", 5_563_526))},
-    ("csr", "metamorph"): (3_525_955, "spec §3"),
-    ("csr", "modumorph"): (8_608_262, "spec §3"),
-    ("obstacle", "metamorph"): (3_534_275, "spec §3"),
-    ("obstacle", "modumorph"): (9_689_862, "spec §3"),
+    ("csr", "metamorph"): (3_525_955, "original code"),
+    ("csr", "modumorph"): (8_608_262, "original code"),
+    ("obstacle", "metamorph"): (3_534_275, "original code"),
+    ("obstacle", "modumorph"): (9_689_862, "original code"),
 }
 
 
-def _compose_group(group: str, name: str) -> DictConfig:
-    overrides = [f"+{group}={name}"]
-    if GlobalHydra.instance().is_initialized():          # inside a Hydra app
-        cfg = compose(config_name=None, overrides=overrides)
-    else:
-        with initialize_config_dir(config_dir=str(CONF), version_base=None):
-            cfg = compose(config_name=None, overrides=overrides)
-    return cfg[group]
+@dataclasses.dataclass
+class ParamsConfig:
+    env: EnvConfig = dataclasses.field(default_factory=EnvConfig)   # env=<task>: ft | incline | csr | obstacle
+    archs: Optional[List[str]] = None   # None: every architecture of mjx_morph.nets.ARCHS
+    all_envs: bool = False              # one block per task; `env` is then ignored
 
 
-def arch_config(name: str) -> DictConfig:
-    """experiments/conf/arch/<name>.yaml, composed by Hydra (struct mode: unknown keys are errors)."""
-    cfg = _compose_group("arch", name)
-    if cfg.name != name:
-        raise ValueError(f"conf/arch/{name}.yaml has name {cfg.name!r}")
-    return cfg
+register("params_schema", ParamsConfig)
 
 
-def env_config(name: str) -> DictConfig:
-    return _compose_group("env", name)
+def model_of(arch: str, task: str) -> Model:
+    return make_model_for(RunConfig(env=EnvConfig(task=task), arch=arch))
 
 
 def unused_in_original(model: Model) -> int:
@@ -76,12 +68,12 @@ def unused_in_original(model: Model) -> int:
     return n
 
 
-def count_line(arch: str, env_cfg: DictConfig) -> tuple[str, bool]:
+def count_line(arch: str, task: str) -> tuple[str, bool]:
     """('<arch> <count>[  (note)]', ok)."""
-    model = model_from_config(arch_config(arch), env_cfg)
+    model = model_of(arch, task)
     n = model.num_params()
     line, ok = f"{arch} {n}", True
-    ref = REFERENCES.get((str(env_cfg.name), arch))
+    ref = REFERENCES.get((task, arch))
     if ref is not None:
         want, where = ref
         extra = unused_in_original(model)
@@ -96,30 +88,27 @@ def count_line(arch: str, env_cfg: DictConfig) -> tuple[str, bool]:
     return line, ok
 
 
-@hydra.main(version_base=None, config_path="conf", config_name="params")
-def main(cfg: DictConfig) -> None:
-    archs = list(cfg.archs) if cfg.archs is not None else list(ARCHS)
+def counts(c: ParamsConfig) -> None:
+    archs = list(c.archs) if c.archs is not None else list(ARCHS)
     unknown = [a for a in archs if a not in ARCHS]
     if unknown:
-        raise SystemExit(f"unknown architecture(s) {unknown}; known: {list(ARCHS)}")
-    if cfg.all_envs:
-        order = ["ft", "incline", "csr", "obstacle"]
-        names = sorted((p.stem for p in (CONF / "env").glob("*.yaml")),
-                       key=lambda n: (order.index(n) if n in order else len(order), n))
-        envs = [env_config(n) for n in names]
-    else:
-        envs = [cfg.env]
+        raise ValueError(f"unknown architecture(s) {unknown}; known: {list(ARCHS)}")
     ok = True
-    for env in envs:
-        if cfg.all_envs:
-            print(f"# env={env.name} hfield_obs={env.hfield_obs} decoder_dims={OmegaConf.to_container(env.decoder_dims)}")
+    for task in (list(TASKS) if c.all_envs else [c.env.task]):
+        if c.all_envs:
+            t = TASKS[task]
+            print(f"# env={task} hfield_obs={t.hfield_obs} decoder_dims={list(t.decoder_dims)}")
         for arch in archs:
-            line, good = count_line(arch, env)
+            line, good = count_line(arch, task)
             ok &= good
             print(line, flush=True)
     if not ok:
-        sys.exit(1)
+        raise SystemExit(1)
+
+
+def main(argv=None) -> int:
+    return cli.main(counts, "params", ParamsConfig, __doc__, argv)
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

@@ -10,56 +10,59 @@ steps, rendered offscreen with a camera following the torso (see mjx_morph.eval.
 """
 from __future__ import annotations
 
+import dataclasses
 import sys
 import time
 from pathlib import Path
+from typing import Optional
 
-import hydra
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import MISSING
 
-from mjx_morph.ppo.run_dir import RunDirError
-from mjx_morph.unimal.errors import RobotError
-from mjx_morph.unimal.render import RenderUnavailable
+from mjx_morph.eval.video import episode_frames, find_robot, render_video, rollout_qpos
+from mjx_morph.run import FAST_COMPILE, load_run, register
+
+from . import cli
 
 
-def render_run(c: dict) -> Path:
-    from mjx_morph.eval.video import episode_frames, find_robot, render_video, rollout_qpos
-    from mjx_morph.ppo.loop import load_run
-    from mjx_morph.ppo.trainer import FAST_COMPILE
-    if int(c["width"]) % 2 or int(c["height"]) % 2 or min(int(c["width"]), int(c["height"])) <= 0:
-        raise ValueError(f"width={c['width']} height={c['height']}: the frame size must be positive and even (H.264)")
+@dataclasses.dataclass
+class RenderConfig:
+    run_dir: str = MISSING          # a run directory of experiments.run
+    robot: str = MISSING            # a robot name (looked up in the run's train set, then its test set) or an XML file
+    robots: Optional[str] = None    # look the name up in this set instead (train | val | test | variants | any set)
+    out: Optional[str] = None       # None: <run_dir>/videos/<robot>.mp4
+    steps: int = 1000               # at most this many control steps; the video stops at the first episode end
+    seed: int = 0                   # episode 0 of the robot with this seed: the same episode as experiments.evaluate's
+    step: Optional[int] = None      # checkpoint (iteration); None: the newest
+    width: int = 640                # frame size (even numbers)
+    height: int = 480
+    fps: float = 50.0               # 50 = real time (control dt 0.02 s)
+
+
+register("render_schema", RenderConfig)
+
+
+def render_run(c: RenderConfig) -> Path:
+    if c.width % 2 or c.height % 2 or min(c.width, c.height) <= 0:
+        raise ValueError(f"width={c.width} height={c.height}: the frame size must be positive and even (H.264)")
     t0 = time.perf_counter()
-    cfg, run_env, model, _, ts, step = load_run(c["run_dir"], c["step"])
-    env, index = find_robot(cfg, run_env, str(c["robot"]), c["robots"])
+    loaded = load_run(c.run_dir, c.step)
+    cfg, exp = loaded.config, loaded.experiment
+    env, index = find_robot(cfg, exp.env, str(c.robot), c.robots)
     name = env.sm.names[index]
-    out = Path(c["out"] or Path(c["run_dir"]) / "videos" / f"{name}.mp4")
-    qpos, done = rollout_qpos(env, model, ts.params, ts.obs_rms, index, int(c["steps"]), int(c["seed"]),
-                              compiler_options=FAST_COMPILE if cfg.get("fast_compile") else None)
+    out = Path(c.out or Path(c.run_dir) / "videos" / f"{name}.mp4")
+    qpos, done = rollout_qpos(env, exp.model, loaded.state.params, loaded.state.obs_rms, index, c.steps, c.seed,
+                              compiler_options=FAST_COMPILE if cfg.fast_compile else None)
     n = episode_frames(done)
-    n_frames = render_video(env, index, qpos[:n], out, seed=int(c["seed"]), width=int(c["width"]),
-                            height=int(c["height"]), fps=float(c["fps"]))
+    n_frames = render_video(env, index, qpos[:n], out, seed=c.seed, width=c.width, height=c.height, fps=c.fps)
     end = f"episode ended after {n} steps" if done.any() else f"episode still running after {n} steps"
-    print(f"[mjx_morph] wrote {out}: {name}, checkpoint {step}, {n_frames} frames at {c['fps']} fps ({end}; "
+    print(f"[mjx_morph] wrote {out}: {name}, checkpoint {loaded.step}, {n_frames} frames at {c.fps:g} fps ({end}; "
           f"{time.perf_counter() - t0:.0f} s)", flush=True)
     return out
 
 
-def run(c: dict) -> int:
-    """`render_run` with user errors (no OpenGL backend included) reported as `error: ...` and status 2."""
-    try:
-        render_run(c)
-    except (RenderUnavailable, RunDirError, RobotError, ValueError, FileNotFoundError) as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
-    return 0
-
-
-@hydra.main(config_path="conf", config_name="render", version_base=None)
-def main(cfg: DictConfig) -> None:
-    code = run(OmegaConf.to_container(cfg, resolve=True))
-    if code:
-        sys.exit(code)
+def main(argv=None) -> int:
+    return cli.main(render_run, "render_schema", RenderConfig, __doc__, argv)
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

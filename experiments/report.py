@@ -10,32 +10,43 @@ could not be drawn is listed under "Missing". See mjx_morph.eval.report.
 """
 from __future__ import annotations
 
+import dataclasses
 import sys
+from typing import Any
 
-import hydra
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import MISSING
 
-from mjx_morph.eval.report import NotARunDir, build_report, find_run_dirs
+from mjx_morph.eval.report import build_report, find_run_dirs
+from mjx_morph.run import register
+
+from . import cli
 
 
-@hydra.main(config_path="conf", config_name="report", version_base=None)
-def main(cfg: DictConfig) -> None:
-    c = OmegaConf.to_container(cfg, resolve=True)
-    runs = c["runs"] if isinstance(c["runs"], list) else [c["runs"]]
-    compare = c.get("compare") or []
-    compare = compare if isinstance(compare, list) else [compare]
-    try:
-        dirs = find_run_dirs(str(r) for r in runs)
-    except NotARunDir as e:
-        print(f"error: {e}", file=sys.stderr)
-        sys.exit(2)
+@dataclasses.dataclass
+class ReportConfig:
+    runs: Any = MISSING                 # run directories (with config.yaml) or folders holding run directories
+    out: str = MISSING                  # output folder: report.md, figures (PNG) and tables (CSV)
+    compare: Any = dataclasses.field(default_factory=lambda: ["rmomo", "modumorph"])
+                                        # per-robot difference a - b; a task lacking one: its first two archs
+    title: str = "mjx_morph report"
+
+
+register("report_schema", ReportConfig)
+
+
+def report(c: ReportConfig) -> None:
+    runs = c.runs if isinstance(c.runs, (list, tuple)) else [c.runs]
+    compare = c.compare if isinstance(c.compare, (list, tuple)) else [c.compare]
+    dirs = find_run_dirs(str(r) for r in runs)
     if not dirs:
-        print("error: no run directories given", file=sys.stderr)
-        sys.exit(2)
-    path = build_report(dirs, c["out"], compare=[str(x) for x in compare],
-                        title=str(c.get("title") or "mjx_morph report"))
+        raise ValueError("no run directories given")
+    path = build_report(dirs, c.out, compare=[str(x) for x in compare], title=str(c.title))
     print(f"[mjx_morph] report: {path} ({len(dirs)} runs)")
 
 
+def main(argv=None) -> int:
+    return cli.main(report, "report_schema", ReportConfig, __doc__, argv)
+
+
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

@@ -25,6 +25,8 @@ from mjx_morph.unimal.mjcf import save_set, to_mjcf
 from mjx_morph.unimal.sets import load_set
 from mjx_morph.unimal.validate import validate_path
 
+from .cli import fail
+
 
 def cmd_info(args) -> int:
     rs = load_set(args.set, args.root)
@@ -152,8 +154,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return args.fn(args)
     except (RobotError, OSError) as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
+        return fail(e)
 
 
 if __name__ == "__main__":

@@ -15,7 +15,11 @@ import sys
 
 from mjx_morph.run import RunConfig, train
 
-from .cli import main
+from . import cli
+
+def main(argv=None) -> int:
+    return cli.main(train, "config", RunConfig, __doc__, argv)
+
 
 if __name__ == "__main__":
-    sys.exit(main(train, "config", RunConfig, __doc__))
+    sys.exit(main())

@@ -1,72 +1,87 @@
 """Run a study: every run of experiments/conf/study/<name>.yaml for each architecture and seed, then evaluate it.
 
-    python -m experiments.study train_size --archs rmomo modumorph --seeds 0 1 2 --env ft
-    python -m experiments.study context_features --archs rmomo --dry-run          # list the runs only
-    python -m experiments.study train_size --archs rmomo -- preset=smoke robots=gen/train   # extra overrides
+    python -m experiments.study train_size archs=[rmomo,modumorph] seeds=[0,1,2] env=ft
+    python -m experiments.study context_features archs=[rmomo] dry_run=true          # list the runs only
+    python -m experiments.study train_size archs=[rmomo] -- preset=smoke robots=gen/train   # extra run overrides
 
 Run directories: <out>/<study>/<env>-<arch>-<run>-s<seed> (default out: runs/studies). Each run is an ordinary
 `experiments.run` run: rerunning the study resumes unfinished runs (finished ones are not retrained; their
-evaluation runs again).
-Afterwards: python -m experiments.report runs=[<out>/<study>] out=<dir>.
+evaluation runs again). Afterwards: python -m experiments.report runs=[<out>/<study>] out=<dir>.
 """
 from __future__ import annotations
 
-import argparse
+import dataclasses
 import sys
 from pathlib import Path
+from typing import List
 
 import yaml
+from omegaconf import MISSING
 
-CONF = Path(__file__).resolve().parent / "conf"
+from mjx_morph.eval.evaluate import evaluate_run
+from mjx_morph.run import CONF_DIR, compose_run_config, register, train, use_compile_cache
+from mjx_morph.sim.env import EnvConfig
+
+from . import cli
 
 
-def plan(study: str, archs, seeds, env: str, out: Path, extra=()) -> list[tuple[Path, list[str], list[str]]]:
+@dataclasses.dataclass
+class StudyConfig:
+    name: str = MISSING                 # the study: a file of experiments/conf/study (without .yaml)
+    archs: List[str] = dataclasses.field(default_factory=lambda: ["rmomo", "modumorph"])
+    seeds: List[int] = dataclasses.field(default_factory=lambda: [0])
+    env: EnvConfig = dataclasses.field(default_factory=EnvConfig)   # env=<task> and env.<option>=... for every run
+    out: str = "runs/studies"
+    episodes: int = 4                   # evaluation episodes per robot
+    dry_run: bool = False               # print the runs and stop
+    run: List[str] = dataclasses.field(default_factory=list)   # extra experiments.run overrides (after --)
+
+
+register("study_schema", StudyConfig)
+
+
+def plan(c: StudyConfig) -> list[tuple[Path, list[str], list[str]]]:
     """[(run dir, experiments.run overrides, sets to evaluate)] of a study."""
-    f = CONF / "study" / f"{study}.yaml"
+    f = CONF_DIR / "study" / f"{c.name}.yaml"
     if not f.exists():
-        known = sorted(p.stem for p in (CONF / "study").glob("*.yaml"))
-        raise SystemExit(f"error: no study {study!r} ({f} does not exist); known: {', '.join(known)}")
+        known = sorted(p.stem for p in (CONF_DIR / "study").glob("*.yaml"))
+        raise ValueError(f"no study {c.name!r} ({f} does not exist); known: {', '.join(known)}")
     spec = yaml.safe_load(f.read_text())
+    default = EnvConfig(task=c.env.task)
+    env_over = [f"env={c.env.task}"] + [f"env.{k.name}={getattr(c.env, k.name)}" for k in dataclasses.fields(EnvConfig)
+                                         if getattr(c.env, k.name) != getattr(default, k.name)]
     runs = []
-    for arch in archs:
-        for seed in seeds:
+    for arch in c.archs:
+        for seed in c.seeds:
             for name, overrides in spec["runs"].items():
-                d = out / study / f"{env}-{arch}-{name}-s{seed}"
-                runs.append((d, [f"env={env}", f"arch={arch}", f"seed={seed}", f"run_dir={d}", *overrides, *extra],
+                d = Path(c.out) / c.name / f"{c.env.task}-{arch}-{name}-s{seed}"
+                runs.append((d, [*env_over, f"arch={arch}", f"seed={seed}", f"run_dir={d}", *overrides, *c.run],
                              list(spec.get("evaluate", ["train", "test"]))))
     return runs
 
 
-def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("study")
-    p.add_argument("--archs", nargs="+", default=["rmomo", "modumorph"])
-    p.add_argument("--seeds", nargs="+", type=int, default=[0])
-    p.add_argument("--env", default="ft")
-    p.add_argument("--out", type=Path, default=Path("runs/studies"))
-    p.add_argument("--episodes", type=int, default=4)
-    p.add_argument("--dry-run", action="store_true", help="print the runs and exit")
-    p.add_argument("overrides", nargs="*", help="extra experiments.run overrides (after --)")
-    a = p.parse_args(argv)
-    runs = plan(a.study, a.archs, a.seeds, a.env, a.out, a.overrides)
+def run_study(c: StudyConfig) -> None:
+    runs = plan(c)
+    configs = [compose_run_config(ov) for _, ov, _ in runs]     # every run's config is checked before any runs
     for d, ov, sets in runs:
         print(f"python -m experiments.run {' '.join(ov)}   # then evaluate {sets}")
-    if a.dry_run:
-        return 0
-    from hydra import compose, initialize_config_dir
-
-    from mjx_morph.eval.evaluate import evaluate_run
-    from mjx_morph.ppo.loop import train, use_compile_cache
-    for i, (d, ov, sets) in enumerate(runs):
+    if c.dry_run:
+        return
+    use_compile_cache(configs[0].compile_cache if configs else None)
+    for i, ((d, _, sets), cfg) in enumerate(zip(runs, configs)):
         print(f"[study] {i + 1}/{len(runs)}: {d}", flush=True)
-        with initialize_config_dir(config_dir=str(CONF), version_base=None):
-            cfg = compose(config_name="config", overrides=ov)
-        if i == 0:
-            use_compile_cache(cfg.get("compile_cache"))
         train(cfg)
-        evaluate_run(d, sets, episodes=a.episodes)
-    print(f"[study] done; report: python -m experiments.report runs=[{a.out / a.study}] out=<dir>")
-    return 0
+        evaluate_run(d, sets, episodes=c.episodes)
+    print(f"[study] done; report: python -m experiments.report runs=[{Path(c.out) / c.name}] out=<dir>")
+
+
+def main(argv=None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if "--" in argv:                    # everything after -- is passed to every run
+        i = argv.index("--")
+        argv, extra = argv[:i], argv[i + 1:]
+        argv.append("run=[" + ",".join(f"'{x}'" for x in extra) + "]")
+    return cli.main(run_study, "run_study", StudyConfig, __doc__, argv, positional="name")
 
 
 if __name__ == "__main__":

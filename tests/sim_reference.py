@@ -1,4 +1,4 @@
-"""Plain NumPy implementation of the observation spec (spec/environments.md §4-§6), computed from MuJoCo C data.
+"""Plain NumPy implementation of the observation spec (MetaMorph's observation code), computed from MuJoCo C data.
 
 Independent of mjx_morph.sim: it works on the robot *alone* (its own MJCF compiled by MuJoCo C), finds nodes and
 joints by name like MetaMorph's agent.py, builds MetaMorph's padded height array H with NumPy slicing, and

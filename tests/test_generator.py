@@ -223,5 +223,5 @@ def test_original_robots_fit_the_geometry():
         pytest.skip("original unimals_100 robots not found (set MJX_MORPH_UNIMALS or put them in ../shared/unimals_100)")
     for m in load_folder(root / "train"):
         # every limb, joint position and axis follows the generator's rules; heights differ for robots whose
-        # files carry DERL's btm_pos bug (spec §3.2), and one train robot has a rest-pose self-contact
+        # files carry DERL's btm_pos bug, and one train robot has a rest-pose self-contact
         assert G.check_design_space(m, height=False, contacts=False) == []

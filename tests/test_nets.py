@@ -31,7 +31,7 @@ FAST_COMPILE = {"xla_backend_optimization_level": 0, "xla_llvm_disable_expensive
 
 # ---------------------------------------------------------------------------------------------- counts
 FT_COUNTS = {
-    # required by the issue (architecture.md §3)
+    # the paper's table
     "metamorph": 3_312_515,
     "rmemo": 3_568_259,
     "modumorph": 5_218_819,    # paper 5,232,774 incl. 13,955 unused parameters
@@ -56,7 +56,7 @@ def test_param_counts_flat_terrain(arch):
 
 
 def test_param_counts_height_map_tasks():
-    # spec §3 reference (original code, unused modules counted) minus the unused modules for ModuMorph
+    # the original code's counts (unused modules counted) minus the unused modules for ModuMorph
     assert count("metamorph", True, [64]) == 3_525_955
     assert count("metamorph", True, [64, 64]) == 3_534_275
     unused_csr = 2 * (52 * 128 + 128) + (192 * 64 + 64 + 64 * 2 + 2) + (192 * 64 + 64 + 64 + 1)
@@ -66,7 +66,7 @@ def test_param_counts_height_map_tasks():
 
 
 def test_param_count_rmemo_context_mlp():
-    # paper-text option: MLP 35 -> 128 -> 128 per network, +2 * 21,120 (architecture.md §3 table: 3,610,499)
+    # paper-text option: MLP 35 -> 128 -> 128 per network, +2 * 21,120 (3,610,499)
     assert count("rmemo", context_mlp=True) == 3_610_499
 
 
@@ -377,7 +377,7 @@ def _softmax_rows(logits, mask):
 
 
 def _ref_net(p, fixed, o, ctx, mask, hf, d, heads):
-    """NumPy forward of one MetaMorph / ModuMorph network for one sample, written from architecture.md."""
+    """NumPy forward of one MetaMorph / ModuMorph network for one sample, written from the original models' equations."""
     dh = d // heads
     split = lambda x: x.reshape(12, heads, dh).transpose(1, 0, 2)             # noqa: E731
     if fixed:
@@ -503,7 +503,7 @@ def test_make_model_rejects_unknown_options():
 def test_params_cli():
     from experiments import params as cli
     for arch in ARCHS:
-        assert cli.arch_config(arch).name == arch
+        assert cli.model_of(arch, "ft").arch == arch
     out = subprocess.run([sys.executable, "-m", "experiments.params", "env=ft"], cwd=ROOT, capture_output=True,
                          text=True, timeout=300)
     assert out.returncode == 0, out.stderr

@@ -101,10 +101,9 @@ def test_video_has_one_frame_per_state(run, tmp_path):
 def test_cli_writes_video_or_exits_2_without_gl(run, tmp_path, monkeypatch, capsys):
     d, _, env, *_ = run
     name = env.sm.names[1]
-    args = {"run_dir": str(d), "robot": name, "robots": None, "out": None, "steps": STEPS, "seed": 0, "step": None,
-            "width": 160, "height": 120, "fps": 25}
+    args = {"run_dir": str(d), "robot": name, "steps": STEPS, "width": 160, "height": 120, "fps": 25}
     try:
-        out = cli.render_run(args)
+        out = cli.render_run(cli.RenderConfig(**args))
     except RenderUnavailable as e:
         pytest.skip(str(e))
     assert out == d / "videos" / f"{name}.mp4" and f"wrote {out}" in capsys.readouterr().out
@@ -113,6 +112,6 @@ def test_cli_writes_video_or_exits_2_without_gl(run, tmp_path, monkeypatch, caps
     def no_gl(*_):
         raise RenderUnavailable("no OpenGL backend for offscreen rendering (test)")
     monkeypatch.setattr(render, "gl_context", no_gl)
-    assert cli.run({**args, "out": str(tmp_path / "x.mp4")}) == 2
+    assert cli.main([f"{k}={v}" for k, v in {**args, "out": tmp_path / "x.mp4"}.items()]) == 2
     err = capsys.readouterr().err
     assert err.startswith("error: no OpenGL backend") and not (tmp_path / "x.mp4").exists()

@@ -45,7 +45,7 @@ def test_shared_tree_embeds_every_robot():
 def test_tree_sizes_of_original_sets():
     train = supertree.build_shared_tree(load_set("unimal100/train").robots)
     test = supertree.build_shared_tree(load_set("unimal100/test").robots)
-    assert train.num_slots <= 28          # DESIGN.md measured 28 bodies; we find 27
+    assert train.num_slots <= 28          # 28 bodies measured when the project was designed; we find 27
     assert test.num_slots <= 29
 
 

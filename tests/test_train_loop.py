@@ -12,7 +12,7 @@ import jax
 import numpy as np
 import pytest
 
-from mjx_morph.run import RunDir, RunDirError, build, train, use_compile_cache
+from mjx_morph.run import Callback, RunDir, RunDirError, build, default_callbacks, train, use_compile_cache
 
 ROOT = Path(__file__).resolve().parents[1]
 CONF = ROOT / "experiments" / "conf"
@@ -49,13 +49,32 @@ def test_interrupted_and_resumed_run_ends_like_uninterrupted(full_run, tmp_path)
     d_full, cfg = full_run
     d = tmp_path / "resumed"
     exp = build(cfg)
-    train(config(f"run_dir={d}", "stop_after=2"), exp)
+    seen = Recorder()
+    train(config(f"run_dir={d}", "stop_after=2"), exp, callbacks=[*default_callbacks(cfg), seen])
     assert RunDir(d, {}, ()).latest_step() == 2
+    assert seen.events == [("start", 0, 2), ("iteration", 1), ("iteration", 2), ("stop", "done", 2)]
     train(config(f"run_dir={d}"), exp)
     a, b = params_of(d_full, exp.trainer), params_of(d, exp.trainer)
     for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b)):
         np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
     assert [int(r["iteration"]) for r in RunDir(d, {}, ()).read_metrics()] == [1, 2, 3]
+
+
+class Recorder(Callback):
+    """Records what the loop reports to its callbacks."""
+
+    def __init__(self):
+        self.events = []
+
+    def on_start(self, loop):
+        self.events.append(("start", loop.start, loop.stop))
+
+    def on_iteration(self, loop, state, row):
+        assert int(state.iteration) == row["iteration"] and row["env_steps"] == row["iteration"] * 256
+        self.events.append(("iteration", int(row["iteration"])))
+
+    def on_stop(self, loop, state, reason):
+        self.events.append(("stop", reason, int(state.iteration)))
 
 
 def _listing(d: Path) -> dict:

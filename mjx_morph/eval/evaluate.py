@@ -35,7 +35,6 @@ from ..unimal.variants import CHANGE_TYPES, variant_change
 from .sweep import Sweeper, SweepResult
 
 TASK_RANGES = {"ft": (52.0, 5008.0), "incline": (-74.0, 3751.0), "csr": (71.0, 3000.0), "obstacle": (126.0, 2403.0)}
-SHORTCUTS = ("train", "val", "test", "variants")
 
 
 def normalised(ret, task: str):

@@ -1,5 +1,5 @@
 """The action distribution: a diagonal Gaussian N(mu, std^2) over the 24 action entries with a frozen,
-state-independent std (MetaMorph's ACTION_STD_FIXED, std 0.9; architecture.md §1.4).
+state-independent std (MetaMorph's ACTION_STD_FIXED, std 0.9).
 
 The std is a constant, not a parameter: it is neither trained nor counted. Entries with `act_mask` False
 (torso slots, missing joint slots, padded limbs) are sampled like the rest but dropped by the environment;
@@ -48,7 +48,7 @@ def entropy(mu: jax.Array, act_mask: jax.Array, std: float = ACTION_STD) -> jax.
 
 def entropy_metamorph(mu: jax.Array, act_mask: jax.Array, std: float = ACTION_STD) -> jax.Array:
     """The original's entropy term: per-entry entropy with masked entries zeroed, averaged over all
-    batch x 24 entries (architecture.md §1.4) -> scalar. Its coefficient is 0 in the paper's runs."""
+    batch x 24 entries -> scalar. Its coefficient is 0 in the paper's runs."""
     del mu
     return jnp.mean(jnp.where(act_mask, entropy_per_entry(std), 0.0))
 

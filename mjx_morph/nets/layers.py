@@ -1,4 +1,4 @@
-"""Building blocks with PyTorch's default initialisation (architecture.md §1.5).
+"""Building blocks with PyTorch's default initialisation.
 
 - `TorchLinear`: ``y = x @ kernel + bias`` with PyTorch's `nn.Linear` defaults, kernel and bias both
   U(-1/sqrt(fan_in), 1/sqrt(fan_in)) (kaiming-uniform with a=sqrt(5) reduces to that bound), unless an

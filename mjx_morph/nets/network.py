@@ -1,7 +1,7 @@
 """One network of the zoo: the actor (2 outputs per limb) or the critic (1 output per limb).
 
 Every architecture is one `PolicyNet` configured by a `NetConfig`; actor and critic are two separate
-instances with separate parameters (architecture.md §1.2). The forward pass is split into phases so that the
+instances with separate parameters, as in MetaMorph and ModuMorph. The forward pass is split into phases so that the
 `Model` (model.py) can run each phase on the right set of rows:
 
     robot_cache(context, node_mask)     once per ROBOT: hypernetwork outputs, fixed-attention probabilities,

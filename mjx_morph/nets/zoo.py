@@ -15,7 +15,7 @@
 | metamorph_plus  | metamorph + Linear(D->256) -> ReLU -> Linear(256->D) between embedding and transformer            |
 | modumorph_plus  | modumorph + the same two layers at the same place                                                |
 
-Design choices where the spec leaves a gap (architecture.md §5 "gaps"), all overridable by flags:
+Design choices where the original papers and code leave a gap, all overridable by flags:
 - The cell's output REPLACES the embedding as the transformer input (`cell_residual=False`); the spec's
   design B says the LSTM output "feeds" the transformer.
 - sqrt(D) (EMBEDDING_SCALE) stays on the embedding, i.e. BEFORE the cell (`scale_after_cell=False`): the

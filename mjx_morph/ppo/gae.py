@@ -1,4 +1,4 @@
-"""Generalised advantage estimation with MetaMorph's time-limit semantics (architecture.md §4).
+"""Generalised advantage estimation with MetaMorph's time-limit semantics.
 
 Per step t the rollout stores the value V_t, the (scaled) reward r_t, `done_t` (the episode ended at this step,
 by a fall, an instability or the time limit) and `timeout_t` (it ended by the time limit). With

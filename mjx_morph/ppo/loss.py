@@ -1,4 +1,4 @@
-"""The PPO loss of one minibatch (architecture.md §4).
+"""The PPO loss of one minibatch (MetaMorph's PPO, clipped value loss).
 
     ratio    = exp(logp - logp_old)
     pi_loss  = -mean(min(ratio * A, clip(ratio, 1 - eps, 1 + eps) * A))
@@ -7,7 +7,7 @@
     loss     = pi_loss + value_coef * v_loss - entropy_coef * entropy
     approx_kl = mean(logp_old - logp)            (computed before the update; drives the early stop)
 
-`weights` (0/1) masks out samples that take no part (none in the default geometry); means are over weighted samples.
+Means are over all samples of the minibatch.
 """
 from __future__ import annotations
 
@@ -26,13 +26,10 @@ class LossInfo(NamedTuple):
     ratio_mean: jnp.ndarray
 
 
-def ppo_loss(logp, logp_old, adv, value, value_old, ret, entropy, weights=None, *, clip_eps: float = 0.2,
+def ppo_loss(logp, logp_old, adv, value, value_old, ret, entropy, *, clip_eps: float = 0.2,
              value_coef: float = 0.5, entropy_coef: float = 0.0) -> LossInfo:
-    w = jnp.ones_like(logp) if weights is None else weights.astype(logp.dtype)
-    n = jnp.maximum(w.sum(), 1.0)
-
     def mean(x):
-        return (x * w).sum() / n
+        return x.sum() / jnp.asarray(x.size, x.dtype)
 
     log_ratio = logp - logp_old
     ratio = jnp.exp(log_ratio)

@@ -1,4 +1,4 @@
-"""Chunked recurrent PPO as one jitted function of a single train state (architecture.md §4-5).
+"""Chunked recurrent PPO as one jitted function of a single train state; docs/architecture.md shows where it sits.
 
 One iteration (`Trainer.iteration`, jitted; `rollout` and `update` are its two halves, jitted separately for
 per-phase timing):

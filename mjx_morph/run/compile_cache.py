@@ -5,6 +5,9 @@ from pathlib import Path
 
 import jax
 
+#: where compiled programs are kept unless a config says otherwise: $MJX_MORPH_XLA_CACHE, else ~/.cache/mjx_morph/xla
+DEFAULT_COMPILE_CACHE = "${oc.env:MJX_MORPH_XLA_CACHE,'~/.cache/mjx_morph/xla'}"
+
 
 def use_compile_cache(path: str | Path | None, min_compile_s: float = 2.0) -> Path | None:
     """Keep compiled XLA programs in `path` across processes, so a resumed run or a second evaluation skips most

@@ -34,6 +34,7 @@ from ..nets.zoo import ModelOptions
 from ..ppo.config import PPOConfig
 from ..sim.env import EnvConfig
 from ..sim.tasks import TASKS
+from .compile_cache import DEFAULT_COMPILE_CACHE
 
 #: Hydra's config folder of the command-line tools (config.yaml with the defaults list, presets, studies)
 CONF_DIR = Path(__file__).resolve().parents[2] / "experiments" / "conf"
@@ -60,8 +61,7 @@ class RunConfig:
     phase_timing: bool = True           # rollout and update as two jitted calls, to log env steps/s per phase
     fast_compile: bool = False          # XLA CPU optimisations off: faster compiles, slower steps (tests, smoke)
     progress: bool = True               # progress bar with steps/s and ETA
-    compile_cache: Optional[str] = "${oc.env:MJX_MORPH_XLA_CACHE,'~/.cache/mjx_morph/xla'}"
-                                        # compiled programs kept across invocations; None: off
+    compile_cache: Optional[str] = DEFAULT_COMPILE_CACHE   # compiled programs kept across invocations; None: off
 
     def default_run_dir(self) -> Path:
         return Path("runs") / f"{self.env.task}-{self.arch}-s{self.seed}"
@@ -99,11 +99,16 @@ def config_error(e: BaseException, overrides: Iterable[str] = ()) -> ConfigError
     key = getattr(cause, "full_key", None)
     msg = str(cause).strip().splitlines()[0] if str(cause).strip() else type(cause).__name__
     given = next((o for o in overrides if key and o.lstrip("+~").split("=", 1)[0] == key), None)
-    if "not in struct" in str(cause) or "Could not override" in str(e) or "Could not append" in str(e) or \
-            type(cause).__name__ in ("ConfigAttributeError", "ConfigKeyError"):
+    if key and ("not in struct" in str(cause) or "Could not override" in str(e) or "Could not append" in str(e)
+                or type(cause).__name__ in ("ConfigAttributeError", "ConfigKeyError")):
         return ConfigError(f"unknown config key {key!r}" + (f" (in {given!r})" if given else ""))
+    if type(cause).__name__ == "MissingMandatoryValue" and key:
+        return ConfigError(f"{key}: required, no value given ({key}=...)")
     if key:
         return ConfigError(f"{given or key}: {msg}")
+    if "Could not find" in str(e) and "env/" in str(e):
+        bad = next((o for o in overrides if o.startswith("env=")), "env=?")
+        return ConfigError(f"{bad}: unknown task; expected one of {', '.join(TASKS)}")
     first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
     return ConfigError(f"{first}: {msg}" if msg not in first else first)
 

@@ -4,7 +4,7 @@ Everything the rest of the project knows about a robot goes through this value: 
 MetaMorph files, the generator and the variants make new ones, the MJCF writer and the simulation consume it.
 It is immutable (tuples of frozen dataclasses); change it with `dataclasses.replace`.
 
-Conventions (see ../shared/spec/unimal.md):
+Conventions:
 - lengths in metres, joint ranges in degrees (the files use `compiler angle="degree"`);
 - a limb's body frame is never rotated, so body frame = world frame at the rest pose;
 - `limbs` are in MuJoCo body order (depth-first document order of the robot file), so a parent always comes

@@ -1,7 +1,7 @@
 """Read MetaMorph-format UNIMAL robots into `Morphology` values, validating while reading.
 
 A robot is either a single MJCF file (DERL/MetaMorph template) or an entry of a folder with `xml/<id>.xml` and
-`metadata/<id>.json`. Everything outside the UNIMAL design space (spec/unimal.md §2-3) raises `RobotError` naming
+`metadata/<id>.json`. Everything outside the UNIMAL design space raises `RobotError` naming
 the file, the element and what was expected. Only the robot (`torso/0` subtree) and its motors are read; sensors,
 sites, cameras, lights, assets and `<contact>` excludes are ignored, as MetaMorph does when it builds its envs.
 """

@@ -1,7 +1,7 @@
-"""Dynamics and kinematics variants of UNIMAL robots (spec/unimal.md §8): MetaMorph's 2400 = 100 robots x 6 change
+"""Dynamics and kinematics variants of UNIMAL robots: MetaMorph's 2400 = 100 robots x 6 change
 types x 4, named `<robot id>_<change>_<k>`, k = 0..3.
 
-The original variant files are not public, so the value ranges below are OUR reconstruction (spec §8), not
+The original variant files are not public, so the value ranges below are OUR reconstruction, not
 MetaMorph's. Each variant changes exactly one change type and nothing else (names aside):
 
 | change        | what changes | how (ours) |
@@ -13,7 +13,7 @@ MetaMorph's. Each variant changes exactly one change type and nothing else (name
 | `joint_angle` | `Joint.range` | DERL `joint_angle` operator, same group rule; every re-drawn range differs from the old one, values = the 13 DERL intervals |
 | `limb_params` | the `tip` of one group's capsules, the `pos` of that group's direct children, the standing height | DERL `limb_params` operator: one group gets a new h in {0.2, 0.3, 0.4} (different from its h); kept only if the robot stays symmetric and no new self-contact appears; height by the generator's standing-height rule |
 
-Why this armature/damping range: the template default is 1 for both (spec §2), and the limbs' own inertia about
+Why this armature/damping range: the template default is 1 for both, and the limbs' own inertia about
 their joints is small (~0.01-0.1 kg m^2), so armature dominates the joint's effective inertia; a factor of up to 5
 either way gives a clearly different, still stable (timestep 0.005 s, damping integrated implicitly) robot.
 Log-uniform treats halving and doubling alike.

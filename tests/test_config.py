@@ -1,0 +1,113 @@
+"""The run schema: one home per default, presets that only override, one-line errors for bad keys and values, and a
+key followed from the command line to the object that uses it. Also: MJX's missing-Warp message is silenced."""
+from __future__ import annotations
+
+import dataclasses
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import yaml
+
+from mjx_morph import _WARP_MISSING
+from mjx_morph.ppo.config import PPOConfig
+from mjx_morph.run import ConfigError, RunConfig, compose_run_config, read_run_config, to_dict
+from mjx_morph.run.config import CONF_DIR
+from mjx_morph.sim.env import EnvConfig
+from mjx_morph.sim.tasks import TASKS
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_composed_default_is_the_schema_default():
+    cfg = compose_run_config([])
+    assert cfg == dataclasses.replace(RunConfig(), compile_cache=cfg.compile_cache)
+    assert cfg.ppo == PPOConfig() and cfg.env == EnvConfig()
+
+
+@pytest.mark.parametrize("task", list(TASKS))
+def test_env_group_picks_the_task(task):
+    cfg = compose_run_config([f"env={task}", "env.self_collision=true"])
+    assert cfg.env == EnvConfig(task=task, self_collision=True)
+
+
+def _leaves(d, prefix=""):
+    for k, v in d.items():
+        if isinstance(v, dict):
+            yield from _leaves(v, f"{prefix}{k}.")
+        else:
+            yield f"{prefix}{k}", v
+
+
+@pytest.mark.parametrize("preset", sorted(p.stem for p in (CONF_DIR / "preset").glob("*.yaml")))
+def test_presets_only_override(preset):
+    """A preset states no default again: every key it sets exists in the schema and differs from its default."""
+    data = yaml.safe_load((CONF_DIR / "preset" / f"{preset}.yaml").read_text()) or {}
+    defaults = dict(_leaves(to_dict(RunConfig())))
+    for key, value in _leaves(data):
+        assert key in defaults or key.startswith("model."), key
+        assert defaults.get(key) != value, f"preset {preset} repeats the default of {key}"
+    compose_run_config([f"preset={preset}"])
+
+
+@pytest.mark.parametrize("override,words", [
+    ("ppo.num_envs=abc", ["ppo.num_envs", "Integer"]),
+    ("seed=abc", ["seed", "Integer"]),
+    ("env.self_collision=maybe", ["env.self_collision", "bool"]),
+    ("no_such_key=1", ["unknown config key", "no_such_key"]),
+    ("model.dmodel=3", ["unknown config key", "model.dmodel"]),
+    ("env=nope", ["env=nope", "ft, incline, csr, obstacle"]),
+])
+def test_bad_keys_and_values_give_one_line(override, words):
+    with pytest.raises(ConfigError) as e:
+        compose_run_config([override])
+    msg = str(e.value)
+    assert "\n" not in msg and all(w in msg for w in words), msg
+
+
+def test_saved_config_is_read_back_and_a_foreign_one_is_refused(tmp_path):
+    cfg = compose_run_config(["env=csr", "arch=modumorph", "model.d_model=64", "ppo.kl_threshold=0.03"])
+    f = tmp_path / "config.yaml"
+    f.write_text(yaml.safe_dump(to_dict(cfg)))
+    assert read_run_config(f) == cfg
+    f.write_text(yaml.safe_dump({**to_dict(cfg), "ppo": {"num_envs": "many"}}))
+    with pytest.raises(ConfigError, match=r"config.yaml: ppo.num_envs: .*Integer"):
+        read_run_config(f)
+
+
+def test_a_key_reaches_its_use():
+    """`ppo.kl_threshold`, `num_robots`, `model.d_model` and `env.episode_length` from the command line to the
+    trainer, the env and the model that use them."""
+    from mjx_morph.run import build
+    exp = build(compose_run_config(["preset=smoke", "robots=gen/train", "ppo.kl_threshold=0.03", "model.d_model=8",
+                                    "env.episode_length=77"]))
+    assert exp.trainer.cfg.kl_threshold == 0.03 and exp.env.num_robots == 2
+    assert exp.model.net.d_model == 8 and exp.env.config.episode_length == 77
+
+
+def test_cli_reports_bad_values_on_one_line():
+    out = subprocess.run([sys.executable, "-m", "experiments.run", "preset=smoke", "ppo.num_envs=abc"], cwd=ROOT,
+                         capture_output=True, text=True, timeout=120)
+    assert out.returncode == 2 and out.stderr.strip().splitlines() == [
+        "error: ppo.num_envs=abc: Value 'abc' of type 'str' could not be converted to Integer"]
+
+
+def test_missing_warp_message_is_silenced_but_other_output_is_not():
+    out = subprocess.run([sys.executable, "-c", "import mjx_morph; from mujoco import mjx"], cwd=ROOT,
+                         capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0 and "warp" not in out.stdout + out.stderr
+    assert _WARP_MISSING.fullmatch("Failed to import warp: No module named 'warp'")
+    assert _WARP_MISSING.fullmatch("Failed to import mujoco_warp: No module named 'warp'")
+    assert not _WARP_MISSING.fullmatch("Failed to import warp: CUDA driver version is insufficient")
+
+
+def test_study_plan_passes_env_options_and_extra_overrides(capsys):
+    from experiments import study
+    assert study.main(["train_size", "archs=[metamorph]", "seeds=[1]", "env=incline", "env.self_collision=true",
+                       "dry_run=true", "--", "preset=smoke", "total_steps=512"]) == 0
+    lines = capsys.readouterr().out.strip().splitlines()
+    assert len(lines) == 4 and all("env=incline env.self_collision=True arch=metamorph seed=1" in ln
+                                   and ln.endswith("preset=smoke total_steps=512   # then evaluate ['train', 'test']")
+                                   for ln in lines)
+    assert study.main(["no_such_study"]) == 2 and "no study 'no_such_study'" in capsys.readouterr().err
