@@ -21,7 +21,11 @@ import shutil
 from pathlib import Path
 from typing import Any, Mapping
 
+import jax
+import numpy as np
+import orbax.checkpoint as ocp
 import yaml
+from tensorboardX import SummaryWriter
 
 
 class RunDirError(RuntimeError):
@@ -56,6 +60,7 @@ class RunDir:
         if not cfg_file.exists():
             cfg_file.write_text(yaml.safe_dump(self.config, sort_keys=False))
         self._manager = None
+        self._tb = None                  # TensorBoard writer, opened with the first logged row
 
     def _check_same(self, saved: Mapping, where: Path) -> None:
         a, b = _flatten(saved), _flatten(self.config)
@@ -72,7 +77,6 @@ class RunDir:
     @property
     def manager(self):
         if self._manager is None:
-            import orbax.checkpoint as ocp
             self._manager = ocp.CheckpointManager(
                 self.path / "checkpoints", options=ocp.CheckpointManagerOptions(max_to_keep=3, create=True))
         return self._manager
@@ -85,8 +89,6 @@ class RunDir:
     def save(self, step: int, state) -> None:
         """Checkpoint the leaves of `state` (Orbax cannot store zero-size arrays, so those are left out and
         rebuilt from the live structure on restore)."""
-        import jax
-        import orbax.checkpoint as ocp
         leaves = jax.tree_util.tree_leaves(state)
         payload = {f"leaf{i:05d}": x for i, x in enumerate(leaves) if x.size}
         self.manager.save(step, args=ocp.args.StandardSave(payload))
@@ -95,8 +97,6 @@ class RunDir:
     def restore(self, step: int, like):
         """Restore checkpoint `step` into the structure of `like` (an initial train state, or its
         `jax.eval_shape`)."""
-        import jax
-        import orbax.checkpoint as ocp
         where = self.path / "checkpoints" / str(step)
         leaves, treedef = jax.tree_util.tree_flatten(like)
         abstract = {f"leaf{i:05d}": jax.ShapeDtypeStruct(x.shape, x.dtype) for i, x in enumerate(leaves) if x.size}
@@ -113,7 +113,6 @@ class RunDir:
                               "nothing was changed") from None
         # uncommitted device arrays, like those of a fresh state: jitted functions then hit their compile cache
         # (Orbax returns committed arrays, which would make every jitted train function compile again)
-        import numpy as np
         return jax.tree_util.tree_unflatten(
             treedef, [jax.numpy.asarray(np.asarray(got[f"leaf{i:05d}"])) if x.size else jax.numpy.zeros(x.shape, x.dtype)
                       for i, x in enumerate(leaves)])
@@ -144,8 +143,7 @@ class RunDir:
             if new:
                 w.writeheader()
             w.writerow(row)
-        if not hasattr(self, "_tb"):
-            from tensorboardX import SummaryWriter
+        if self._tb is None:
             self._tb = SummaryWriter(str(self.path / "tb"))
         step = int(row.get("env_steps", row["iteration"]))
         for k, v in row.items():
@@ -161,7 +159,7 @@ class RunDir:
             return [{k: float(v) for k, v in r.items() if v not in ("", None)} for r in csv.DictReader(fh)]
 
     def close(self) -> None:
-        if getattr(self, "_tb", None) is not None:
+        if self._tb is not None:
             self._tb.close()
         if self._manager is not None:
             self._manager.close()

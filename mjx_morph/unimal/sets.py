@@ -30,6 +30,7 @@ import numpy as np
 from .errors import RobotError
 from .morphology import Morphology
 from .reader import load_folder, load_robot
+from .variants import CHANGE_TYPES, make_variants
 
 PROJECT_ROOT = Path(__file__).resolve().parents[2]
 ASSETS = PROJECT_ROOT / "assets"
@@ -77,7 +78,6 @@ def load_set(name: str, root: str | Path | None = None) -> RobotSet:
     """Robots of a named set or a path (see the module docstring)."""
     if name.endswith("/variants") or "/variants/" in name:
         base, _, change = name.partition("/variants")
-        from .variants import CHANGE_TYPES, make_variants
         change = change.strip("/")
         if change and change not in CHANGE_TYPES:
             raise RobotError(name, "", f"unknown change type {change!r}; expected one of {', '.join(CHANGE_TYPES)}")
