@@ -23,7 +23,7 @@ from mjx_morph.unimal.render import RenderUnavailable
 
 
 def render_run(c: dict) -> Path:
-    from mjx_morph.eval.video import episode_frames, find_robot, render_video, rollout_qpos
+    from mjx_morph.eval.video import EpisodeRecorder, episode_frames, find_robot, render_video
     from mjx_morph.ppo.loop import load_run
     from mjx_morph.ppo.trainer import FAST_COMPILE
     if int(c["width"]) % 2 or int(c["height"]) % 2 or min(int(c["width"]), int(c["height"])) <= 0:
@@ -33,8 +33,9 @@ def render_run(c: dict) -> Path:
     env, index = find_robot(cfg, run_env, str(c["robot"]), c["robots"])
     name = env.sm.names[index]
     out = Path(c["out"] or Path(c["run_dir"]) / "videos" / f"{name}.mp4")
-    qpos, done = rollout_qpos(env, model, ts.params, ts.obs_rms, index, int(c["steps"]), int(c["seed"]),
-                              compiler_options=FAST_COMPILE if cfg.get("fast_compile") else None)
+    record = EpisodeRecorder(env, model, int(c["steps"]),
+                             compiler_options=FAST_COMPILE if cfg.get("fast_compile") else None)
+    qpos, done = record(ts.params, ts.obs_rms, index, int(c["seed"]))
     n = episode_frames(done)
     n_frames = render_video(env, index, qpos[:n], out, seed=int(c["seed"]), width=int(c["width"]),
                             height=int(c["height"]), fps=float(c["fps"]))

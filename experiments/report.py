@@ -15,7 +15,8 @@ import sys
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
-from mjx_morph.eval.report import NotARunDir, build_report, find_run_dirs
+from mjx_morph.eval.report import build_report
+from mjx_morph.eval.runs import NotARunDir, find_run_dirs
 
 
 @hydra.main(config_path="conf", config_name="report", version_base=None)

@@ -29,8 +29,8 @@ STEPS = 20
 def run(smoke_run):
     d = smoke_run[0]
     cfg, env, model, _, ts, _ = load_run(d)
-    qpos, done = video.rollout_qpos(env, model, ts.params, ts.obs_rms, 1, STEPS, seed=0,
-                                    compiler_options=FAST_COMPILE)
+    record = video.EpisodeRecorder(env, model, STEPS, compiler_options=FAST_COMPILE)
+    qpos, done = record(ts.params, ts.obs_rms, 1, seed=0)
     return d, cfg, env, model, ts, qpos, done
 
 
