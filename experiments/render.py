@@ -18,7 +18,7 @@ from typing import Optional
 
 from omegaconf import MISSING
 
-from mjx_morph.eval.video import episode_frames, find_robot, render_video, rollout_qpos
+from mjx_morph.eval.video import EpisodeRecorder, episode_frames, find_robot, render_video
 from mjx_morph.run import FAST_COMPILE, load_run, register
 
 from . import cli
@@ -50,8 +50,8 @@ def render_run(c: RenderConfig) -> Path:
     env, index = find_robot(cfg, exp.env, str(c.robot), c.robots)
     name = env.sm.names[index]
     out = Path(c.out or Path(c.run_dir) / "videos" / f"{name}.mp4")
-    qpos, done = rollout_qpos(env, exp.model, loaded.state.params, loaded.state.obs_rms, index, c.steps, c.seed,
-                              compiler_options=FAST_COMPILE if cfg.fast_compile else None)
+    record = EpisodeRecorder(env, exp.model, c.steps, compiler_options=FAST_COMPILE if cfg.fast_compile else None)
+    qpos, done = record(loaded.state.params, loaded.state.obs_rms, index, c.seed)
     n = episode_frames(done)
     n_frames = render_video(env, index, qpos[:n], out, seed=c.seed, width=c.width, height=c.height, fps=c.fps)
     end = f"episode ended after {n} steps" if done.any() else f"episode still running after {n} steps"

@@ -16,7 +16,8 @@ from typing import Any
 
 from omegaconf import MISSING
 
-from mjx_morph.eval.report import build_report, find_run_dirs
+from mjx_morph.eval.report import build_report
+from mjx_morph.eval.runs import find_run_dirs
 from mjx_morph.run import register
 
 from . import cli

@@ -15,7 +15,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from mjx_morph.eval.evaluate import TASK_RANGES, evaluate_run, normalised, resolve_set
+from mjx_morph.eval.evaluate import evaluate_run, resolve_set
+from mjx_morph.eval.stats import TASK_RANGES, normalised
 from mjx_morph.eval.sweep import Sweeper, episode_keys
 from mjx_morph.layout import Obs
 from mjx_morph.run import FAST_COMPILE, load_run, make_env_for

@@ -30,8 +30,8 @@ def run(smoke_run):
     d = smoke_run[0]
     run = load_run(d)
     cfg, env, model, ts = run.config, run.experiment.env, run.experiment.model, run.state
-    qpos, done = video.rollout_qpos(env, model, ts.params, ts.obs_rms, 1, STEPS, seed=0,
-                                    compiler_options=FAST_COMPILE)
+    record = video.EpisodeRecorder(env, model, STEPS, compiler_options=FAST_COMPILE)
+    qpos, done = record(ts.params, ts.obs_rms, 1, seed=0)
     return d, cfg, env, model, ts, qpos, done
 
 

@@ -14,8 +14,9 @@ import pytest
 import yaml
 from scipy import stats
 
-from mjx_morph.eval.evaluate import TASK_RANGES
-from mjx_morph.eval.report import NotARunDir, build_report, find_run_dirs, mean_curve
+from mjx_morph.eval.report import build_report
+from mjx_morph.eval.runs import NotARunDir, Run, classify, find_run_dirs
+from mjx_morph.eval.stats import TASK_RANGES, mean_curve
 from mjx_morph.unimal.variants import CHANGE_TYPES
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -26,7 +27,7 @@ PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
 
 def ci_ref(x) -> float:
-    """95% CI half-width (Student t), computed here independently of mjx_morph.eval.evaluate.ci95."""
+    """95% CI half-width (Student t), computed here independently of mjx_morph.eval.stats.ci95."""
     x = np.asarray(x, float)
     return float(stats.t.ppf(0.975, x.size - 1) * np.std(x, ddof=1) / np.sqrt(x.size))
 
@@ -57,10 +58,10 @@ def make_run(root: Path, name: str, task="ft", arch="rmomo", seed=0, num_robots=
     rng = np.random.default_rng(zlib.crc32(f"{name}|{task}|{arch}|{seed}".encode()))
     d = root / name
     (d / "eval").mkdir(parents=True)
-    cfg = {"env": {"name": task}, "arch": {"name": arch}, "seed": seed, "num_robots": num_robots,
+    cfg = {"env": {"task": task}, "arch": arch, "seed": seed, "num_robots": num_robots,
            "robots": "unimal100/train", "total_steps": iters * 1000}
     if context is not None:
-        cfg["context_features"] = context
+        cfg["env"]["context_features"] = context
     (d / "config.yaml").write_text(yaml.safe_dump(cfg, sort_keys=False))
     if metrics:
         with (d / "metrics.csv").open("w", newline="") as fh:
@@ -256,11 +257,8 @@ def test_cli_rejects_a_non_run_path(tmp_path):
 
 
 def test_classify_main_size_context():
-    from mjx_morph.eval.report import Run, classify
-
     def run(n=None, ctx=None, task="ft"):
-        return Run(Path("x"), {"env": {"name": task}, "arch": {"name": "rmomo"}, "num_robots": n,
-                               "context_features": ctx})
+        return Run(Path("x"), {"env": {"task": task, "context_features": ctx}, "arch": "rmomo", "num_robots": n})
     smoke = [run(2), run(2), run(2, ["gear"])]                 # tiny runs: all on 2 robots
     classify(smoke)
     assert [r.kind for r in smoke] == ["main", "main", "context"]

@@ -14,8 +14,8 @@ generated ones), `variants` (the 24 dynamics/kinematics variants of each train r
 or any set name or path that `load_set` knows (tag: the name with "/" replaced by "_"); `<tag>:<set>` evaluates
 a set under another label (e.g. `test:path/to/robots`, so that reports treat it as the test set).
 
-Normalised return (the paper's per-task range over robots): (R - min) / (max - min) with ft 52/5008, incline
--74/3751, csr 71/3000, obstacle 126/2403.
+Normalised return (the paper's per-task range over robots, `stats.normalised`): (R - min) / (max - min) with ft
+52/5008, incline -74/3751, csr 71/3000, obstacle 126/2403.
 """
 from __future__ import annotations
 
@@ -32,23 +32,9 @@ from ..run import FAST_COMPILE, RunConfig, load_run, make_env_for, train_robots
 from ..unimal.morphology import Morphology
 from ..unimal.sets import load_set
 from ..unimal.variants import CHANGE_TYPES, variant_change
+from .stats import ci95, normalised
 from .sweep import Sweeper, SweepResult
 
-TASK_RANGES = {"ft": (52.0, 5008.0), "incline": (-74.0, 3751.0), "csr": (71.0, 3000.0), "obstacle": (126.0, 2403.0)}
-
-
-def normalised(ret, task: str):
-    lo, hi = TASK_RANGES[task]
-    return (np.asarray(ret, np.float64) - lo) / (hi - lo)
-
-
-def ci95(x: Sequence[float]) -> float:
-    """Half-width of the 95% confidence interval of the mean (Student t); nan for fewer than 2 values."""
-    from scipy import stats
-    x = np.asarray(x, np.float64)
-    if x.size < 2:
-        return float("nan")
-    return float(stats.t.ppf(0.975, x.size - 1) * x.std(ddof=1) / np.sqrt(x.size))
 
 
 @dataclasses.dataclass

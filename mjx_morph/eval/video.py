@@ -1,17 +1,19 @@
 """Videos of a trained policy: one deterministic episode of one robot, rendered offscreen with MuJoCo.
 
     env, index = find_robot(cfg, run_env, "gen-1-3")          # a robot of the run's train or test set, or a file
-    qpos, done = rollout_qpos(env, model, params, obs_rms, index, steps=1000, seed=0)
+    record = EpisodeRecorder(env, model, steps=1000)          # compiled once, for any robot of env
+    qpos, done = record(params, obs_rms, index, seed=0)
     n = episode_frames(done)                                   # frames up to the first episode end
     render_video(env, index, qpos[:n], "robot.mp4", seed=0, width=640, height=480, fps=50)
 
-Rollout: the evaluation sweep's (`sweep.Sweeper`) for a single env, in one jitted `lax.scan`: reset with the key
-of episode 0 of `robot_index` (`sweep.episode_keys`), observations normalised with the run's frozen statistics,
-the Gaussian's mean as the action, the recurrent state reset at t = 0. In the env of a robot set the video
-therefore shows episode 0 of `experiments.evaluate` for that robot with the same seed. `qpos[t]` is the physics
-state *before* step t (`qpos[0]` the reset pose) in the padded shared-tree layout, `done[t]` whether step t ended
-the episode. The env resets itself in the step that ends an episode, so the terminal state is not kept: the video
-shows qpos[0 .. k] for the first step k that ends the episode (`episode_frames`), all `steps` states if none does.
+Rollout (`EpisodeRecorder`): the evaluation sweep's (`sweep.Sweeper`) for a single env, in one jitted `lax.scan`:
+reset with the key of episode 0 of `robot_index` (`sweep.episode_keys`), observations normalised with the run's
+frozen statistics, the Gaussian's mean as the action, the recurrent state reset at t = 0. In the env of a robot
+set the video therefore shows episode 0 of `experiments.evaluate` for that robot with the same seed. `qpos[t]` is
+the physics state *before* step t (`qpos[0]` the reset pose) in the padded shared-tree layout, `done[t]` whether
+step t ended the episode. The env resets itself in the step that ends an episode, so the terminal state is not
+kept: the video shows qpos[0 .. k] for the first step k that ends the episode (`episode_frames`), all `steps`
+states if none does.
 
 Rendering: the robot's padded MJCF (`sim.padding`, the text `env.sm.mj_models[i]` was compiled from, so the env's
 qpos goes straight into its MjData) plus a checker floor, a sky and the gallery's light (`unimal.render`), drawn
@@ -45,15 +47,19 @@ from .evaluate import resolve_set
 from .sweep import episode_keys, policy_step
 
 RENDER_PATCH = 121       # height-field vertices per side drawn for csr / obstacle (0.1 m apart: 12 m)
-_COMPILED: dict = {}     # the last few compiled rollouts, by (env, model, steps, compiler options)
 
 
-def _rollout_fn(env: Env, model: Model, steps: int, compiler_options: dict | None):
-    ck = (id(env), id(model), steps, tuple(sorted((compiler_options or {}).items())))
-    if ck in _COMPILED:
-        return _COMPILED[ck][-1]
+class EpisodeRecorder:
+    """Episode 0 of one robot of `env` under the deterministic policy of `model` (see the module docstring):
+    `recorder(params, obs_rms, robot_index, seed)` -> (qpos (steps, nq), done (steps,)). The rollout is jitted
+    once per recorder and serves every robot of the env: keep one recorder per (env, model, steps)."""
 
-    def run(params, obs_rms, robot, key):
+    def __init__(self, env: Env, model: Model, steps: int = 1000, compiler_options: dict | None = None):
+        self.env, self.model, self.steps = env, model, int(steps)
+        self._run = jax.jit(self._rollout, compiler_options=compiler_options)
+
+    def _rollout(self, params, obs_rms, robot, key):
+        env, model = self.env, self.model
         cache = model.robot_cache(params, env.robots)
         state = env.vreset(key[None], robot[None])
 
@@ -62,14 +68,16 @@ def _rollout_fn(env: Env, model: Model, steps: int, compiler_options: dict | Non
             nxt, carry = policy_step(env, model, params, obs_rms, cache, state, carry, jnp.full((1,), t == 0))
             return (nxt, carry), (state.qpos[0], nxt.done[0])
 
-        _, (qpos, done) = jax.lax.scan(body, (state, model.initial_carry(1)), jnp.arange(steps))
+        _, (qpos, done) = jax.lax.scan(body, (state, model.initial_carry(1)), jnp.arange(self.steps))
         return qpos, done
 
-    fn = jax.jit(run, compiler_options=compiler_options)
-    if len(_COMPILED) >= 4:
-        _COMPILED.pop(next(iter(_COMPILED)))
-    _COMPILED[ck] = (env, model, fn)         # holds env and model, so that their ids stay theirs
-    return fn
+    def __call__(self, params, obs_rms, robot_index: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+        if not 0 <= robot_index < self.env.num_robots:
+            raise ValueError(f"robot index {robot_index} not in [0, {self.env.num_robots})")
+        r = jnp.asarray([robot_index], jnp.int32)
+        key = episode_keys(seed, self.env, r, jnp.zeros((1,), jnp.int32))[0]
+        qpos, done = self._run(params, obs_rms, r[0], key)
+        return np.asarray(qpos), np.asarray(done)
 
 
 def find_robot(cfg: RunConfig, run_env: Env, robot: str, robots: str | None = None) -> tuple[Env, int]:
@@ -103,18 +111,6 @@ def find_robot(cfg: RunConfig, run_env: Env, robot: str, robots: str | None = No
             looked.append(f"{es.name} ({len(found)} robots)")
     raise ValueError(f"robot {robot!r} not found in " + "; ".join(looked) + f". Give a robot name (e.g. "
                      f"{names[0]!r}), robots=<set> to look in another set, or a robot XML file")
-
-
-def rollout_qpos(env: Env, model: Model, params, obs_rms, robot_index: int, steps: int = 1000, seed: int = 0,
-                 compiler_options: dict | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """(qpos (steps, nq), done (steps,)) of episode 0 of robot `robot_index` under the deterministic policy (see
-    the module docstring). Compiled once per (env, model, steps)."""
-    if not 0 <= robot_index < env.num_robots:
-        raise ValueError(f"robot index {robot_index} not in [0, {env.num_robots})")
-    r = jnp.asarray([robot_index], jnp.int32)
-    key = episode_keys(seed, env, r, jnp.zeros((1,), jnp.int32))[0]
-    qpos, done = _rollout_fn(env, model, int(steps), compiler_options)(params, obs_rms, r[0], key)
-    return np.asarray(qpos), np.asarray(done)
 
 
 def episode_frames(done: np.ndarray) -> int:

@@ -1,0 +1,220 @@
+"""Finished run directories: finding them and reading what they hold.
+
+    dirs = find_run_dirs(["runs/studies/train_size"])       # run directories at or below the given paths
+    runs = [read_run(d) for d in dirs]                      # config.yaml, metrics.csv, eval/<tag>.json
+    classify(runs)                                          # run.kind: main | size | context | other
+
+Per run directory (read only): `config.yaml` (required), `metrics.csv` of `mjx_morph.ppo.loop` and `eval/<tag>.json`
+of `mjx_morph.eval.evaluate`; problems with the optional files are kept in `Run.notes` rather than raised.
+"""
+from __future__ import annotations
+
+import csv
+import json
+import math
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Iterable, Sequence
+
+import numpy as np
+import yaml
+
+from ..layout import CONTEXT_GROUPS as _GROUPS
+
+CONTEXT_GROUPS: tuple[str, ...] = tuple(_GROUPS)     # in column order: the order of the groups in figures
+
+
+class NotARunDir(ValueError):
+    def __init__(self, path):
+        super().__init__(f"{path}: not a run directory (no config.yaml)")
+        self.path = path
+
+
+def find_run_dirs(paths: Iterable[str | Path]) -> list[Path]:
+    """Run directories (with config.yaml) among `paths`; a directory without config.yaml is searched for run
+    directories below it. Raises NotARunDir for a path that is neither."""
+    found: list[Path] = []
+    for p in paths:
+        p = Path(p)
+        if (p / "config.yaml").is_file():
+            found.append(p)
+            continue
+        below: list[Path] = []
+        if p.is_dir():
+            for dirpath, dirnames, files in os.walk(p):
+                if "config.yaml" in files and Path(dirpath) != p:
+                    below.append(Path(dirpath))
+                    dirnames[:] = []
+                    continue
+                dirnames[:] = sorted(d for d in dirnames
+                                     if not d.startswith(".") and d not in ("checkpoints", "tb", "eval"))
+        if not below:
+            raise NotARunDir(p)
+        found.extend(sorted(below))
+    seen, out = set(), []
+    for p in found:
+        key = p.resolve()
+        if key not in seen:
+            seen.add(key)
+            out.append(p)
+    return out
+
+
+def _float(v) -> float:
+    try:
+        return float(v)
+    except (TypeError, ValueError):
+        return float("nan")
+
+
+def read_metrics(path: Path) -> dict[str, np.ndarray]:
+    """Columns of metrics.csv as float arrays (empty dict when the file is missing or has no rows)."""
+    f = path / "metrics.csv"
+    if not f.exists():
+        return {}
+    with f.open(newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    if not rows:
+        return {}
+    cols = list(rows[0].keys())
+    return {c: np.array([_float(r.get(c)) for r in rows]) for c in cols if c is not None}
+
+
+@dataclass
+class Run:
+    path: Path
+    cfg: dict
+    metrics: dict[str, np.ndarray] = field(default_factory=dict)
+    evals: dict[str, dict] = field(default_factory=dict)
+    notes: list[str] = field(default_factory=list)      # problems reading this run
+    kind: str = "main"                                  # main | size | context | other: see classify()
+
+    @property
+    def task(self) -> str:
+        return str((self.cfg.get("env") or {}).get("task", "?"))
+
+    @property
+    def arch(self) -> str:
+        return str(self.cfg.get("arch", "?"))
+
+    @property
+    def seed(self):
+        return self.cfg.get("seed")
+
+    @property
+    def num_robots(self) -> int | None:
+        v = self.cfg.get("num_robots")
+        return int(v) if v else None
+
+    @property
+    def context(self) -> tuple[str, ...] | None:
+        """Kept context feature groups (None: all)."""
+        v = (self.cfg.get("env") or {}).get("context_features")
+        if v is None:
+            return None
+        v = [v] if isinstance(v, str) else list(v)
+        if set(CONTEXT_GROUPS) <= set(v):
+            return None
+        order = {g: i for i, g in enumerate(CONTEXT_GROUPS)}
+        return tuple(sorted(v, key=lambda g: (order.get(g, len(order)), g)))
+
+    @property
+    def context_label(self) -> str:
+        return "all" if self.context is None else ("+".join(self.context) or "none")
+
+    @property
+    def train_size(self) -> int:
+        if self.num_robots:
+            return self.num_robots
+        n = (self.evals.get("train") or {}).get("robots")
+        return int(n) if isinstance(n, (int, float)) and n > 0 else 100
+
+    @property
+    def final_steps(self) -> float:
+        s = self.metrics.get("env_steps")
+        if s is not None and np.isfinite(s).any():
+            return float(np.nanmax(s))
+        steps = [e.get("env_steps") for e in self.evals.values() if isinstance(e.get("env_steps"), (int, float))]
+        return float(max(steps)) if steps else float("nan")
+
+    @property
+    def iterations(self) -> int:
+        return len(self.metrics.get("iteration", []))
+
+    def per_robot(self, tag: str) -> dict[str, float]:
+        pr = (self.evals.get(tag) or {}).get("per_robot") or {}
+        return {k: float(v) for k, v in pr.items() if isinstance(v, (int, float)) and math.isfinite(v)}
+
+    # metrics-derived numbers
+    def final_train_return(self) -> float:
+        """Mean episode return of the last ~5% of iterations."""
+        y = self.metrics.get("episode_return")
+        if y is None:
+            return float("nan")
+        y = y[np.isfinite(y)]
+        if not y.size:
+            return float("nan")
+        k = max(1, int(math.ceil(0.05 * y.size)))
+        return float(y[-k:].mean())
+
+    def wall_hours(self) -> float:
+        w = self.metrics.get("wall_s")
+        return float(np.nansum(w) / 3600) if w is not None else float("nan")
+
+    def hours_per_100m(self) -> float:
+        s = self.final_steps
+        return self.wall_hours() / s * 1e8 if s and np.isfinite(s) else float("nan")
+
+    def mean_sps(self) -> float:
+        """Mean env steps/s of the iterations after the first (which includes compilation)."""
+        s = self.metrics.get("sps")
+        if s is None or not s.size:
+            return float("nan")
+        s = s[1:] if s.size > 1 else s
+        s = s[np.isfinite(s)]
+        return float(s.mean()) if s.size else float("nan")
+
+
+def read_run(path: str | Path) -> Run:
+    """The Run of a run directory. Raises NotARunDir without config.yaml, ValueError (or yaml.YAMLError) when it is
+    not a mapping; unreadable metrics.csv or eval files become notes."""
+    path = Path(path)
+    f = path / "config.yaml"
+    if not f.is_file():
+        raise NotARunDir(path)
+    cfg = yaml.safe_load(f.read_text())
+    if not isinstance(cfg, dict):
+        raise ValueError(f"{f}: not a mapping")
+    run = Run(path, cfg)
+    try:
+        run.metrics = read_metrics(path)
+    except (OSError, csv.Error) as e:
+        run.notes.append(f"metrics.csv unreadable ({e})")
+    if not run.metrics:
+        run.notes.append("no metrics.csv rows: left out of the learning curves and compute numbers")
+    for g in sorted((path / "eval").glob("*.json")) if (path / "eval").is_dir() else []:
+        try:
+            d = json.loads(g.read_text())
+            if not isinstance(d, dict):
+                raise ValueError("not a JSON object")
+        except (OSError, ValueError) as e:
+            run.notes.append(f"{g.name} unreadable ({e})")
+            continue
+        run.evals[g.stem] = d
+    return run
+
+
+def classify(runs: Sequence[Run]) -> None:
+    """Set each run's kind. Per task, the main robot count is "all" (num_robots null) when some run of the task
+    uses all robots, else the largest num_robots of the task's runs (so a report of smoke runs or of a
+    training-set-size study alone still has main runs). Runs with all context features at that count are main,
+    at other counts size; runs with context_features set are context runs at that count, else other."""
+    for task in {r.task for r in runs}:
+        rs = [r for r in runs if r.task == task]
+        level = None if any(r.num_robots is None for r in rs) else max(r.num_robots for r in rs)
+        for r in rs:
+            if r.context is None:
+                r.kind = "main" if r.num_robots == level else "size"
+            else:
+                r.kind = "context" if r.num_robots == level else "other"

@@ -1,0 +1,164 @@
+"""Statistics of evaluation results and learning curves.
+
+    ci95(x)                          # half-width of the 95% CI of the mean (Student t)
+    normalised(returns, "ft")        # the paper's per-task range: (R - min) / (max - min)
+    set_stat(runs, "test", "ft")     # Stat: mean and CI over robots of the seed-averaged per-robot returns
+    grid, mean, lo, hi, n = mean_curve([(steps, returns), ...])
+
+Per-robot mean returns (the `per_robot` of eval/<tag>.json) are averaged over the seeds (runs) of a group that
+evaluated the robot (`seed_average`); means and 95% CIs are then taken over robots. Normalised returns use the
+per-task ranges of `TASK_RANGES` (nan for a task without one). Learning curves are lightly smoothed, interpolated
+onto a common grid and averaged over the curves covering each grid point.
+"""
+from __future__ import annotations
+
+from collections import defaultdict
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+from scipy import stats
+
+from ..sim.tasks import TASKS, get_task
+from ..unimal.variants import CHANGE_TYPES, variant_change
+from .runs import Run
+
+#: the paper's per-task return range over robots, (min, max): the task records' `return_range`
+TASK_RANGES = {name: task.return_range for name, task in TASKS.items()}
+CURVE_POINTS = 200
+
+
+def normalised(ret, task: str):
+    """(R - min) / (max - min) with the task's return range (`Task.normalised`)."""
+    return get_task(task).normalised(ret)
+
+
+def normalised_or_nan(x, task: str | None) -> np.ndarray:
+    """`normalised`, or nan (of the shape of `x`) for a task without a range."""
+    if task not in TASK_RANGES:
+        return np.full(np.shape(x), np.nan)
+    return normalised(x, task)
+
+
+def ci95(x: Sequence[float]) -> float:
+    """Half-width of the 95% confidence interval of the mean (Student t); nan for fewer than 2 values."""
+    x = np.asarray(x, np.float64)
+    if x.size < 2:
+        return float("nan")
+    return float(stats.t.ppf(0.975, x.size - 1) * x.std(ddof=1) / np.sqrt(x.size))
+
+
+def seed_average(runs: Sequence[Run], tag: str) -> dict[str, float]:
+    """Robot name -> its mean return averaged over the runs (seeds) that evaluated it on `tag`."""
+    acc: dict[str, list[float]] = defaultdict(list)
+    for r in runs:
+        for k, v in r.per_robot(tag).items():
+            acc[k].append(v)
+    return {k: float(np.mean(v)) for k, v in acc.items()}
+
+
+@dataclass
+class Stat:
+    mean: float
+    ci: float
+    norm: float
+    norm_ci: float
+    robots: int
+    seeds: int
+
+
+def stat_of(values: Sequence[float], task: str | None, seeds: int, norm_values=None) -> Stat:
+    v = np.asarray(values, float)
+    n = normalised_or_nan(v, task) if norm_values is None else np.asarray(norm_values, float)
+    return Stat(float(v.mean()) if v.size else float("nan"), ci95(v), float(n.mean()) if n.size else float("nan"),
+                ci95(n), int(v.size), seeds)
+
+
+def set_stat(runs: Sequence[Run], tag: str, task: str) -> Stat | None:
+    """Mean and CI over robots of the seed-averaged per-robot returns on `tag` (None: no run has it). Without
+    per-robot numbers: the seeds' mean returns (CI over seeds, or the file's CI for one seed)."""
+    have = [r for r in runs if tag in r.evals]
+    if not have:
+        return None
+    pr = seed_average(have, tag)
+    if pr:
+        return stat_of(list(pr.values()), task, len(have))
+    means = [float(r.evals[tag].get("mean_return", np.nan)) for r in have]
+    st = stat_of(means, task, len(have))
+    if len(have) == 1:
+        st.ci = float(have[0].evals[tag].get("ci95_return", np.nan))
+        st.norm_ci = float(have[0].evals[tag].get("ci95_normalised", np.nan))
+        st.robots = int(have[0].evals[tag].get("robots", 0) or 0)
+    return st
+
+
+def change_stats(runs: Sequence[Run], task: str) -> dict[str, Stat]:
+    """Variant returns per change type: {change: Stat} over the variant robots of that type."""
+    have = [r for r in runs if "variants" in r.evals]
+    pr = seed_average(have, "variants")
+    by: dict[str, list[float]] = defaultdict(list)
+    for name, v in pr.items():
+        try:
+            by[variant_change(name)[1]].append(v)
+        except ValueError:
+            continue
+    if by:
+        return {c: stat_of(by[c], task, len(have)) for c in CHANGE_TYPES if c in by}
+    out = {}
+    for c in CHANGE_TYPES:          # no per-robot names: the files' per-change summaries
+        pcs = [r.evals["variants"].get("per_change", {}).get(c) for r in have]
+        pcs = [p for p in pcs if isinstance(p, dict) and "mean_return" in p]
+        if pcs:
+            st = stat_of([p["mean_return"] for p in pcs], task, len(pcs))
+            if len(pcs) == 1:
+                st.ci, st.norm_ci = float(pcs[0].get("ci95_return", np.nan)), float(pcs[0].get("ci95_normalised",
+                                                                                               np.nan))
+            out[c] = st
+    return out
+
+
+def robot_difference(runs_a: Sequence[Run], runs_b: Sequence[Run], tag: str = "test",
+                     task: str | None = None) -> list[tuple[str, float, float, float]]:
+    """[(robot, a, b, a - b)] over the robots both evaluated, seed-averaged, sorted by difference (largest first);
+    normalised returns when `task` is given."""
+    a, b = seed_average(runs_a, tag), seed_average(runs_b, tag)
+    rows = []
+    for k in a:
+        if k in b:
+            va, vb = a[k], b[k]
+            if task is not None:
+                va, vb = float(normalised_or_nan(va, task)), float(normalised_or_nan(vb, task))
+            rows.append((k, va, vb, va - vb))
+    return sorted(rows, key=lambda r: (-r[3], r[0]))
+
+
+def _smooth(y: np.ndarray, k: int) -> np.ndarray:
+    """Centred moving average over k points (shorter at the ends)."""
+    if k <= 1 or y.size < 3:
+        return y
+    c = np.concatenate([[0.0], np.cumsum(y)])
+    i = np.arange(y.size)
+    lo, hi = np.maximum(0, i - k // 2), np.minimum(y.size, i + k // 2 + 1)
+    return (c[hi] - c[lo]) / (hi - lo)
+
+
+def mean_curve(curves: Sequence[tuple[np.ndarray, np.ndarray]], points: int = CURVE_POINTS, smooth: bool = True):
+    """(grid, mean, lo, hi, count) of curves (x, y) interpolated onto a common grid; mean over the curves that cover
+    a grid point, lo/hi = mean -/+ ci95 where at least two do (else nan)."""
+    curves = [(np.asarray(x, float), np.asarray(y, float)) for x, y in curves]
+    curves = [(x[np.isfinite(y) & np.isfinite(x)], y[np.isfinite(y) & np.isfinite(x)]) for x, y in curves]
+    curves = [(x, y) for x, y in curves if x.size]
+    if not curves:
+        e = np.zeros(0)
+        return e, e, e, e, e
+    grid = np.linspace(min(x[0] for x, _ in curves), max(x[-1] for x, _ in curves), points)
+    ys = np.full((len(curves), points), np.nan)
+    for i, (x, y) in enumerate(curves):
+        if smooth:
+            y = _smooth(y, max(1, y.size // 50))
+        inside = (grid >= x[0]) & (grid <= x[-1])
+        ys[i, inside] = np.interp(grid[inside], x, y)
+    count = np.isfinite(ys).sum(0)
+    mean = np.array([np.nanmean(c) if n else np.nan for c, n in zip(ys.T, count)])
+    half = np.array([ci95(c[np.isfinite(c)]) if n >= 2 else np.nan for c, n in zip(ys.T, count)])
+    return grid, mean, mean - half, mean + half, count
