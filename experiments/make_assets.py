@@ -16,7 +16,9 @@ from pathlib import Path
 
 import numpy as np
 
-from mjx_morph.unimal.generator import check_design_space, generate_set, topology_key
+from mjx_morph.unimal.design_space import topology_key
+from mjx_morph.unimal.draft import check_design_space
+from mjx_morph.unimal.generator import generate_set
 from mjx_morph.unimal.mjcf import save_set
 from mjx_morph.unimal.reader import load_folder
 from mjx_morph.unimal.validate import check_morphology

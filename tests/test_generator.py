@@ -9,9 +9,12 @@ import mujoco
 import numpy as np
 import pytest
 
-from mjx_morph.unimal import generator as G
+from mjx_morph.unimal.design_space import DENSITIES, GEARS, JOINT_RANGES, LIMB_HEIGHTS, sph2cart, topology_key
+from mjx_morph.unimal.draft import check_design_space, limb_geometry, standing_height
+from mjx_morph.unimal.generator import DEFAULT_MAX_HEIGHT, DEFAULT_NUM_LIMBS, generate_robot, generate_set
 from mjx_morph.unimal.mjcf import compile_model
 from mjx_morph.unimal.morphology import TORSO, Joint, Limb, Morphology
+from mjx_morph.unimal.mutations import MUTATION_OPS, mutate
 from mjx_morph.unimal.reader import load_folder
 from mjx_morph.unimal.validate import check_morphology
 
@@ -26,7 +29,7 @@ def _unimals() -> Path | None:
 
 @pytest.fixture(scope="module")
 def robots() -> list[Morphology]:
-    return G.generate_set(4, seed=123)
+    return generate_set(4, seed=123)
 
 
 def _rest(m: Morphology):
@@ -39,14 +42,14 @@ def _rest(m: Morphology):
 
 # ---- determinism and names ------------------------------------------------------------------------------------
 def test_same_seed_same_robots(robots):
-    again = G.generate_set(4, seed=123)
+    again = generate_set(4, seed=123)
     assert again == robots
     assert [m.name for m in robots] == [f"gen-123-{i}" for i in range(4)]
-    assert G.generate_robot(7, "a") == G.generate_robot(np.random.default_rng(7), "a")
+    assert generate_robot(7, "a") == generate_robot(np.random.default_rng(7), "a")
 
 
 def test_different_seed_different_robots(robots):
-    other = G.generate_set(2, seed=124)
+    other = generate_set(2, seed=124)
     for a, b in zip(robots, other):
         assert dataclasses.replace(a, name=b.name) != b
 
@@ -54,26 +57,26 @@ def test_different_seed_different_robots(robots):
 # ---- design space ---------------------------------------------------------------------------------------------
 def test_inside_design_space(robots):
     for m in robots:
-        assert G.check_design_space(m) == []
+        assert check_design_space(m) == []
         assert check_morphology(m) == []
 
 
 def test_limits_and_value_sets(robots):
-    lo, hi = G.DEFAULT_NUM_LIMBS
+    lo, hi = DEFAULT_NUM_LIMBS
     for m in robots:
         assert lo <= m.num_limbs <= 10
-        assert m.torso_density in G.DENSITIES
-        assert len({l.density for l in m.limbs}) == 1 and m.limbs[0].density in G.DENSITIES
+        assert m.torso_density in DENSITIES
+        assert len({l.density for l in m.limbs}) == 1 and m.limbs[0].density in DENSITIES
         ids = {l.id for l in m.limbs}
         assert len(ids) == m.num_limbs
         for l in m.limbs:
             assert l.radius == 0.05
             assert 1 <= len(l.joints) <= 2 and [j.kind for j in l.joints] in (["x"], ["y"], ["x", "y"])
             h = round(l.length - 0.05, 1)
-            assert h in G.LIMB_HEIGHTS and abs(l.length - (0.05 + h)) < 0.01
+            assert h in LIMB_HEIGHTS and abs(l.length - (0.05 + h)) < 0.01
             for j in l.joints:
-                assert tuple(j.range) in G.JOINT_RANGES
-                assert j.gear in G.GEARS
+                assert tuple(j.range) in JOINT_RANGES
+                assert j.gear in GEARS
                 assert (j.armature, j.damping, j.stiffness) == (1.0, 1.0, 1.0)
         for a, b in m.mirror_pairs:
             assert a in ids and b in ids
@@ -137,11 +140,11 @@ def test_standing_height_rule(robots):
     for m in robots:
         model, data = _rest(m)
         zmin = -0.1
-        for l, geo in zip(m.limbs, G.limb_geometry(m)):
-            btm_pos = G.sph2cart(0.1 + geo["h"], geo["theta"], geo["phi"])
+        for l, geo in zip(m.limbs, limb_geometry(m)):
+            btm_pos = sph2cart(0.1 + geo["h"], geo["theta"], geo["phi"])
             zmin = min(zmin, data.xpos[model.body(l.name).id][2] + btm_pos[2])
         assert m.height == round(-zmin + 0.2, 2)
-        assert m.height <= G.DEFAULT_MAX_HEIGHT
+        assert m.height <= DEFAULT_MAX_HEIGHT
 
 
 def _joint(pos, axis):
@@ -153,17 +156,17 @@ def test_standing_height_by_hand():
     down = Limb(id=0, parent=TORSO, pos=(0.0, 0.0, -0.1), tip=(0.0, 0.0, -0.45),
                 joints=(_joint((0.0, 0.0, 0.05), (1.0, 0.0, 0.0)),), density=500.0)
     m = Morphology(name="hand", height=0.0, limbs=(down,), torso_density=500.0)
-    assert G.standing_height(m) == 0.8
+    assert standing_height(m) == 0.8
     # a horizontal limb: the torso's own bottom (-0.1) is lowest, height 0.3
     side = Limb(id=0, parent=TORSO, pos=(0.1, 0.0, 0.0), tip=(0.25, 0.0, 0.0),
                 joints=(_joint((-0.05, 0.0, 0.0), (0.0, 0.0, 1.0)),), density=500.0)
-    assert G.standing_height(dataclasses.replace(m, limbs=(side,))) == 0.3
+    assert standing_height(dataclasses.replace(m, limbs=(side,))) == 0.3
 
 
 def test_sph2cart_rounding():
-    assert G.sph2cart(0.35, 180, 135) == (-0.25, 0.0, -0.25)
-    assert G.sph2cart(0.1, 90, 90) == (0.0, 0.1, 0.0)
-    assert all(str(v) != "-0.0" for v in G.sph2cart(0.45, 0, 180))
+    assert sph2cart(0.35, 180, 135) == (-0.25, 0.0, -0.25)
+    assert sph2cart(0.1, 90, 90) == (0.0, 0.1, 0.0)
+    assert all(str(v) != "-0.0" for v in sph2cart(0.45, 0, 180))
 
 
 # ---- topology key ---------------------------------------------------------------------------------------------
@@ -178,18 +181,18 @@ def test_topology_key_ignores_child_order():
     a = _tree([TORSO, 0, TORSO])
     b = _tree([TORSO, TORSO, 1])
     c = _tree([TORSO, 0, 1])
-    assert G.topology_key(a) == G.topology_key(b) == "((())())"
-    assert G.topology_key(c) != G.topology_key(a)
+    assert topology_key(a) == topology_key(b) == "((())())"
+    assert topology_key(c) != topology_key(a)
 
 
 # ---- mutations ------------------------------------------------------------------------------------------------
 def test_mutations_stay_in_design_space(robots):
     m = robots[0]
     rng = np.random.default_rng(0)
-    for op in G.MUTATION_OPS:
-        out = G.mutate(m, op, rng)
+    for op in MUTATION_OPS:
+        out = mutate(m, op, rng)
         assert out.name == m.name
-        assert G.check_design_space(out) == [], op
+        assert check_design_space(out) == [], op
         if op == "grow_limb":
             assert out.num_limbs in (m.num_limbs, m.num_limbs + 1, m.num_limbs + 2) and out.num_limbs <= 10
         elif op == "delete_limb":
@@ -200,20 +203,20 @@ def test_mutations_stay_in_design_space(robots):
             assert dataclasses.replace(out, torso_density=m.torso_density, limbs=tuple(
                 dataclasses.replace(l, density=k.density) for l, k in zip(out.limbs, m.limbs))) == m
     with pytest.raises(ValueError):
-        G.mutate(m, "teleport", rng)
+        mutate(m, "teleport", rng)
 
 
 def test_grow_from_scratch_and_cap(robots):
     full = next((m for m in robots if m.num_limbs == 10), None)
     if full is not None:
-        assert G.mutate(full, "grow_limb", np.random.default_rng(0)) is full
-    m = G.generate_robot(3, "small", num_limbs=(2, 2))
-    assert 2 <= m.num_limbs <= 3 and G.check_design_space(m) == []
+        assert mutate(full, "grow_limb", np.random.default_rng(0)) is full
+    m = generate_robot(3, "small", num_limbs=(2, 2))
+    assert 2 <= m.num_limbs <= 3 and check_design_space(m) == []
 
 
 def test_mutate_is_deterministic(robots):
     for op in ("grow_limb", "limb_params", "dof"):
-        assert G.mutate(robots[1], op, np.random.default_rng(5)) == G.mutate(robots[1], op, np.random.default_rng(5))
+        assert mutate(robots[1], op, np.random.default_rng(5)) == mutate(robots[1], op, np.random.default_rng(5))
 
 
 # ---- the original robots --------------------------------------------------------------------------------------
@@ -223,5 +226,6 @@ def test_original_robots_fit_the_geometry():
         pytest.skip("original unimals_100 robots not found (set MJX_MORPH_UNIMALS or put them in ../shared/unimals_100)")
     for m in load_folder(root / "train"):
         # every limb, joint position and axis follows the generator's rules; heights differ for robots whose
-        # files carry DERL's btm_pos bug, and one train robot has a rest-pose self-contact
-        assert G.check_design_space(m, height=False, contacts=False) == []
+        # files carry DERL's btm_pos bug (its limb_params writes v(r + h) as btm_pos), and one train robot has a
+        # rest-pose self-contact
+        assert check_design_space(m, height=False, contacts=False) == []

@@ -7,8 +7,10 @@ from pathlib import Path
 
 import pytest
 
-from mjx_morph.unimal import generator as G
 from mjx_morph.unimal import variants as V
+from mjx_morph.unimal.design_space import DENSITIES, GEARS, JOINT_RANGES, topology_key
+from mjx_morph.unimal.draft import check_design_space
+from mjx_morph.unimal.generator import generate_set
 from mjx_morph.unimal.morphology import Morphology
 from mjx_morph.unimal.reader import load_folder
 from mjx_morph.unimal.validate import check_morphology
@@ -122,12 +124,12 @@ def test_variants_stay_in_design_space(base, variants):
         b_id, change, _ = V.variant_change(v.name)
         assert check_morphology(v) == [], v.name
         for _, j in v.joints():
-            assert tuple(j.range) in G.JOINT_RANGES and j.gear in G.GEARS, v.name
-        assert v.torso_density in G.DENSITIES and v.limbs[0].density in G.DENSITIES, v.name
+            assert tuple(j.range) in JOINT_RANGES and j.gear in GEARS, v.name
+        assert v.torso_density in DENSITIES and v.limbs[0].density in DENSITIES, v.name
         if change == "limb_params":
             # geometry, symmetry, no new self-contact (originals may carry one), standing height by our rule
-            base_problems = {p.replace(b_id, "*") for p in G.check_design_space(by_name[b_id], height=False)}
-            problems = {p.replace(v.name, "*") for p in G.check_design_space(v)}
+            base_problems = {p.replace(b_id, "*") for p in check_design_space(by_name[b_id], height=False)}
+            problems = {p.replace(v.name, "*") for p in check_design_space(v)}
             assert problems <= base_problems, v.name
             assert all(l.length - 0.05 == pytest.approx(round(l.length - 0.05, 1), abs=0.01) for l in v.limbs)
 
@@ -135,7 +137,7 @@ def test_variants_stay_in_design_space(base, variants):
 def test_variants_of_generated_robots_pass_every_check(gen_train):
     for v in V.make_variants(gen_train[:3]):
         change = V.variant_change(v.name)[1]
-        assert G.check_design_space(v, dynamics=change not in ("armature", "damping")) == [], v.name
+        assert check_design_space(v, dynamics=change not in ("armature", "damping")) == [], v.name
 
 
 def test_variants_are_deterministic(base, variants):
@@ -166,15 +168,15 @@ def test_shipped_sets_load_and_are_disjoint(gen_train):
     assert len(gen_train) == 100 and len(test) == 100
     assert {m.name for m in gen_train} == {f"gen-0-{i}" for i in range(100)}
     assert {m.name for m in test} == {f"gen-1-{i}" for i in range(100)}
-    train_keys = {G.topology_key(m) for m in gen_train}
-    assert not train_keys & {G.topology_key(m) for m in test}
+    train_keys = {topology_key(m) for m in gen_train}
+    assert not train_keys & {topology_key(m) for m in test}
     for m in gen_train + test:
         assert check_morphology(m) == [], m.name
-        assert G.check_design_space(m) == [], m.name
+        assert check_design_space(m) == [], m.name
 
 
 def test_shipped_sets_match_the_generator(gen_train):
     """The files are what `python -m experiments.make_assets` makes with the current code."""
     by_name = {m.name: m for m in gen_train}
-    for m in G.generate_set(2, seed=0):
+    for m in generate_set(2, seed=0):
         assert by_name[m.name] == m

@@ -33,7 +33,7 @@ from typing import Iterable, Sequence
 import numpy as np
 
 from .errors import RobotError
-from .generator import mutate
+from .mutations import mutate
 from .morphology import Morphology
 
 CHANGE_TYPES = ("armature", "damping", "density", "gear", "joint_angle", "limb_params")
