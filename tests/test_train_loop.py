@@ -11,6 +11,7 @@ from pathlib import Path
 import jax
 import numpy as np
 import pytest
+import yaml
 
 from mjx_morph.run import Callback, RunDir, RunDirError, build, default_callbacks, train, use_compile_cache
 
@@ -22,7 +23,7 @@ from conftest import smoke_config as config
 
 
 def params_of(run_dir: Path, trainer):
-    run = RunDir(run_dir, {}, ())
+    run = RunDir(run_dir)
     ts = run.restore(run.latest_step(), trainer.abstract_state())
     run.close()
     return ts
@@ -33,10 +34,16 @@ def full_run(smoke_run):
     return smoke_run
 
 
+@pytest.fixture(scope="module")
+def exp(smoke_run):
+    """The smoke config's Experiment, shared so that its compiled functions serve every test of this module."""
+    return build(smoke_run[1])
+
+
 def test_smoke_run_writes_everything(full_run):
     d, cfg = full_run
     assert {"config.yaml", "metrics.csv", "learning_curve.png", "tb", "checkpoints"} <= {p.name for p in d.iterdir()}
-    rows = RunDir(d, {}, ()).read_metrics()
+    rows = RunDir(d).read_metrics()
     assert [int(r["iteration"]) for r in rows] == [1, 2, 3]
     for r in rows:
         assert abs(r["first_ratio"] - 1) < 1e-4 and abs(r["first_kl"]) < 1e-4
@@ -45,19 +52,18 @@ def test_smoke_run_writes_everything(full_run):
     assert (d / "learning_curve.png").stat().st_size > 5000
 
 
-def test_interrupted_and_resumed_run_ends_like_uninterrupted(full_run, tmp_path):
+def test_interrupted_and_resumed_run_ends_like_uninterrupted(full_run, exp, tmp_path):
     d_full, cfg = full_run
     d = tmp_path / "resumed"
-    exp = build(cfg)
     seen = Recorder()
     train(config(f"run_dir={d}", "stop_after=2"), exp, callbacks=[*default_callbacks(cfg), seen])
-    assert RunDir(d, {}, ()).latest_step() == 2
+    assert RunDir(d).latest_step() == 2
     assert seen.events == [("start", 0, 2), ("iteration", 1), ("iteration", 2), ("stop", "done", 2)]
     train(config(f"run_dir={d}"), exp)
     a, b = params_of(d_full, exp.trainer), params_of(d, exp.trainer)
     for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b)):
         np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
-    assert [int(r["iteration"]) for r in RunDir(d, {}, ()).read_metrics()] == [1, 2, 3]
+    assert [int(r["iteration"]) for r in RunDir(d).read_metrics()] == [1, 2, 3]
 
 
 class Recorder(Callback):
@@ -90,20 +96,79 @@ def test_other_architecture_in_same_run_dir_is_refused(full_run, tmp_path):
     assert _listing(d) == before
 
 
-def test_corrupt_checkpoint_gives_clear_error_and_changes_nothing(full_run, tmp_path):
+def test_corrupt_checkpoint_gives_clear_error_and_changes_nothing(full_run, exp, tmp_path):
     d = tmp_path / "corrupt"
     shutil.copytree(full_run[0], d)
     for f in (d / "checkpoints" / "3").rglob("*"):
         if f.is_file() and f.stat().st_size > 0:
             f.write_bytes(b"\0garbage" * 4)
     before = _listing(d)
-    with pytest.raises(RunDirError, match=r"checkpoints/3: the checkpoint could not be restored"):
-        train(config(f"run_dir={d}", "total_steps=1024"))  # one more iteration to do: it must restore first
+    with pytest.raises(RunDirError, match=r"checkpoints/3: the checkpoint could not be restored") as e:
+        train(config(f"run_dir={d}"), exp)
     assert _listing(d) == before
+    msg = str(e.value)
+    assert "\n" not in msg and "resume_step=2" in msg and "TensorStore" not in msg and "<" not in msg
+    # the offered way out: resume from the previous checkpoint; the corrupt one is set aside, not deleted
+    train(config(f"run_dir={d}", "resume_step=2"), exp)
+    assert (d / "checkpoints.orphaned" / "3").is_dir() and RunDir(d).steps()[-1] == 3
+    assert [int(r["iteration"]) for r in RunDir(d).read_metrics()] == [1, 2, 3]
+    for x, y in zip(jax.tree.leaves(params_of(full_run[0], exp.trainer)), jax.tree.leaves(params_of(d, exp.trainer))):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+
+
+def test_failed_start_writes_nothing(tmp_path):
+    """Bad robots, values or directories fail before the run directory is touched (nothing to block a rerun)."""
+    d = tmp_path / "p1"
+    for bad in ("robots=typo", "num_robots=0", "num_robots=-1", "num_robots=500", "total_steps=-5",
+                "ppo.num_envs=0", "ppo.epochs=0", "model.d_model=0"):
+        with pytest.raises(Exception) as e:
+            train(config(f"run_dir={d}", bad))
+        assert not d.exists(), bad
+        assert "\n" not in str(e.value) and str(e.value), bad
+    with pytest.raises(ValueError, match=r"num_robots=500: expected 1 to 100"):
+        build(config("num_robots=500"))
+    with pytest.raises(ValueError, match=r"total_steps=-5: expected a positive number"):
+        build(config("total_steps=-5"))
+    (tmp_path / "afile").write_text("x")
+    with pytest.raises(RunDirError, match=r"afile/run: cannot write the run directory"):
+        RunDir(tmp_path / "afile" / "run", {"seed": 0}).create()
+
+
+def test_crash_before_the_first_checkpoint_leaves_no_duplicate_rows(full_run, exp, tmp_path):
+    d = tmp_path / "crashed"
+    shutil.copytree(full_run[0], d)
+    shutil.rmtree(d / "checkpoints")                       # as if the first run died before saving anything
+    train(config(f"run_dir={d}"), exp)
+    assert [int(r["iteration"]) for r in RunDir(d).read_metrics()] == [1, 2, 3]
+    assert (d / "metrics.csv.orphaned").exists() and (d / "tb.orphaned").is_dir()
+    events = [f for f in (d / "tb").iterdir() if f.name.startswith("events")]
+    assert len(events) == 1
+
+
+def test_resume_with_changed_training_keys(full_run, exp, tmp_path):
+    """A changed training key is refused with the difference, unless allowed; an allowed change is recorded."""
+    from mjx_morph.run import to_dict
+    from mjx_morph.run.config import FREE, IDENTITY
+    d = tmp_path / "changed"
+    shutil.copytree(full_run[0], d)
+    before = _listing(d)
+    with pytest.raises(RunDirError, match=r"ppo.lr: saved 0.0003, now 0.001 \(allow_changes=\[ppo.lr\]"):
+        train(config(f"run_dir={d}", "ppo.lr=1e-3"), exp)
+    assert _listing(d) == before
+    new = to_dict(config("total_steps=1024", "allow_changes=[total_steps]", f"run_dir={d}"))
+    run = RunDir(d, new, IDENTITY, FREE, ("total_steps",))
+    assert run.changes == ["total_steps: 768 -> 1024"]
+    run.create()
+    history = yaml.safe_load((d / "config_history.yaml").read_text())
+    assert history[0]["changes"] == ["total_steps: 768 -> 1024"] and history[0]["iteration"] == 3
+    assert yaml.safe_load((d / "config.yaml").read_text())["total_steps"] == 1024
+    with pytest.raises(RunDirError, match=r"arch: saved 'rmomo', now 'metamorph'"):
+        RunDir(d, {**new, "arch": "metamorph"}, IDENTITY, FREE, ("arch",))   # identity keys never change
+    RunDir(d, {**new, "stop_after": 7}, IDENTITY, FREE)                        # loop keys change freely
 
 
 def test_feed_forward_smoke_run(smoke_run_ff):
-    rows = RunDir(smoke_run_ff[0], {}, ()).read_metrics()
+    rows = RunDir(smoke_run_ff[0]).read_metrics()
     assert len(rows) == 3 and all(abs(r["first_ratio"] - 1) < 1e-4 for r in rows)
 
 

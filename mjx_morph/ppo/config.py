@@ -33,7 +33,24 @@ class PPOConfig:
         """Feed-forward models train on single transitions (W = 1, B = 0), as the original PPO."""
         return self if recurrent else dataclasses.replace(self, window=1, burn_in=0)
 
+    def check_values(self) -> None:
+        """Refuse values no model can run with (ValueError naming the key and what was expected)."""
+        for key in ("num_envs", "rollout_len", "window", "minibatch_size", "epochs"):
+            if getattr(self, key) < 1:
+                raise ValueError(f"ppo.{key}={getattr(self, key)}: expected a positive integer")
+        if self.burn_in < 0:
+            raise ValueError(f"ppo.burn_in={self.burn_in}: expected 0 or more")
+        for key in ("gamma", "lam"):
+            if not 0.0 <= getattr(self, key) <= 1.0:
+                raise ValueError(f"ppo.{key}={getattr(self, key)}: expected a value in [0, 1]")
+        if self.lr <= 0 or self.clip_eps <= 0:
+            raise ValueError(f"ppo.lr={self.lr}, ppo.clip_eps={self.clip_eps}: expected positive values")
+        if self.sampling not in ("balanced", "uniform"):
+            raise ValueError(f"ppo.sampling={self.sampling}: expected balanced or uniform")
+
     def check(self) -> None:
+        """Refuse settings the algorithm cannot run, the window geometry included (call on `for_model`'s result)."""
+        self.check_values()
         if self.rollout_len % self.window:
             raise ValueError(f"ppo.rollout_len={self.rollout_len} must be a multiple of ppo.window={self.window}")
         if self.minibatch_size % self.window:

@@ -37,6 +37,8 @@ def train_robots(cfg: RunConfig) -> tuple[str, tuple[Morphology, ...]]:
     gen/train), the first `num_robots` of them if set."""
     name = cfg.robots or default_train_set(cfg.robots_root)
     robots = load_set(name, cfg.robots_root).robots
+    if cfg.num_robots is not None and not 1 <= cfg.num_robots <= len(robots):
+        raise ValueError(f"num_robots={cfg.num_robots}: expected 1 to {len(robots)}, the size of {name}")
     return name, tuple(robots[: cfg.num_robots] if cfg.num_robots else robots)
 
 
@@ -52,6 +54,9 @@ def make_model_for(cfg: RunConfig) -> Model:
 
 
 def build(cfg: RunConfig) -> Experiment:
+    """Everything a run's config describes, validated: bad values, robot files, model options and batch
+    geometry fail here, before anything is written."""
+    cfg.check()
     name, robots = train_robots(cfg)
     env = make_env_for(cfg, robots)
     model = make_model_for(cfg)

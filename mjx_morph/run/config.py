@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import dataclasses
 from pathlib import Path
-from typing import Any, Iterable, Optional
+from typing import Any, Iterable, List, Optional
 
 from hydra import compose as hydra_compose
 from hydra import initialize_config_dir
@@ -62,14 +62,32 @@ class RunConfig:
     fast_compile: bool = False          # XLA CPU optimisations off: faster compiles, slower steps (tests, smoke)
     progress: bool = True               # progress bar with steps/s and ETA
     compile_cache: Optional[str] = DEFAULT_COMPILE_CACHE   # compiled programs kept across invocations; None: off
+    allow_changes: List[str] = dataclasses.field(default_factory=list)
+                                        # on a resume: training keys that may differ from the saved config
+                                        # (e.g. [total_steps]); recorded in config_history.yaml
+    resume_step: Optional[int] = None   # resume from this checkpoint instead of the newest (later ones are set aside)
 
     def default_run_dir(self) -> Path:
         return Path("runs") / f"{self.env.task}-{self.arch}-s{self.seed}"
+
+    def check(self) -> None:
+        """Values the types cannot refuse: one line naming the key and what was expected (ValueError)."""
+        positive = {"total_steps": self.total_steps, "checkpoint_every": self.checkpoint_every,
+                    "num_robots": self.num_robots, "stop_after": self.stop_after,
+                    "time_limit_min": self.time_limit_min, "resume_step": self.resume_step}
+        for key, v in positive.items():
+            if v is not None and v <= 0:
+                raise ValueError(f"{key}={v}: expected a positive number" + (" or null" if key != "total_steps"
+                                                                             and key != "checkpoint_every" else ""))
+        self.ppo.check_values()
 
 
 #: keys that shape the train state: a resume must agree on them (dotted keys or prefixes)
 IDENTITY = ("env.task", "env.context_features", "arch", "model", "robots", "robots_root", "num_robots", "seed",
             "ppo.num_envs", "ppo.rollout_len", "ppo.window", "ppo.burn_in", "ppo.minibatch_size", "ppo.sampling")
+#: keys of the loop alone, which a resume may change freely; every other key changes only through allow_changes
+FREE = ("run_dir", "stop_after", "time_limit_min", "checkpoint_every", "phase_timing", "fast_compile", "progress",
+        "compile_cache", "allow_changes", "resume_step")
 
 
 class ConfigError(ValueError):

@@ -6,7 +6,7 @@ from typing import NamedTuple
 
 from ..ppo.trainer import TrainState
 from .build import Experiment, build
-from .config import IDENTITY, RunConfig, read_run_config, to_dict
+from .config import RunConfig, read_run_config
 from .run_dir import RunDir, RunDirError
 
 
@@ -28,7 +28,7 @@ def load_run(run_dir: str | Path, step: int | None = None) -> LoadedRun:
     if not cfg_file.exists():
         raise FileNotFoundError(f"{run_dir}: not a run directory (no config.yaml)")
     cfg = read_run_config(cfg_file)
-    run = RunDir(run_dir, to_dict(cfg), IDENTITY)
+    run = RunDir(run_dir)
     try:
         steps = run.manager.all_steps() if (run_dir / "checkpoints").exists() else []
         if not steps:

@@ -25,9 +25,9 @@ import jax
 
 from ..ppo.trainer import Trainer, TrainState
 from .build import Experiment, build
-from .config import IDENTITY, RunConfig, to_dict, to_schema
+from .config import FREE, IDENTITY, RunConfig, to_dict, to_schema
 from .figures import learning_curve
-from .run_dir import RunDir
+from .run_dir import RunDir, RunDirError
 
 
 @dataclasses.dataclass
@@ -144,18 +144,34 @@ def run_iteration(trainer: Trainer, state: TrainState, phase_timing: bool) -> tu
 def train(cfg: Any, experiment: Experiment | None = None, callbacks: Sequence[Callback] | None = None) -> Path:
     """Train (or resume) the run of `cfg`; returns its run directory."""
     cfg = to_schema(cfg)
-    run = RunDir(cfg.run_dir or cfg.default_run_dir(), to_dict(cfg), IDENTITY)
-    exp = experiment if experiment is not None else build(cfg)
+    cfg.check()
+    run = RunDir(cfg.run_dir or cfg.default_run_dir(), to_dict(cfg), IDENTITY, FREE, tuple(cfg.allow_changes))
+    exp = experiment if experiment is not None else build(cfg)     # validates the robots, the model, the geometry
     trainer = exp.trainer
     pc = trainer.cfg
     print(f"[mjx_morph] {exp.model.arch} on {cfg.env.task}: {exp.env.num_robots} robots ({exp.robot_set}), "
           f"{exp.model.num_params():,} parameters, {pc.num_envs} envs x {pc.rollout_len} steps = "
           f"{pc.steps_per_iter:,} steps/iteration, {trainer.num_iters} iterations; run dir {run.path}", flush=True)
-    state = trainer.init(jax.random.PRNGKey(cfg.seed))
-    latest = run.latest_step()
+    t0 = time.perf_counter()
+    print("[mjx_morph] compiling and running the initial state (env resets, parameter init)...", end=" ", flush=True)
+    state = jax.block_until_ready(trainer.init(jax.random.PRNGKey(cfg.seed)))
+    print(f"{time.perf_counter() - t0:.0f} s", flush=True)
+    latest = run.latest_step() if cfg.resume_step is None else cfg.resume_step
+    if cfg.resume_step is not None and cfg.resume_step not in run.steps():
+        raise RunDirError(f"{run.path / 'checkpoints'}: no checkpoint {cfg.resume_step} to resume from; "
+                          f"have {run.steps() or 'none'}")
     if latest is not None:
         state = run.restore(latest, state)
-        run.truncate_metrics(latest)
+    # everything is read and checked: only now is the run directory written
+    run.create()
+    for change in run.changes:
+        print(f"[mjx_morph] resuming with a changed setting: {change} (recorded in config_history.yaml)", flush=True)
+    if cfg.resume_step is not None:
+        moved = run.set_aside_after(cfg.resume_step)
+        if moved:
+            print(f"[mjx_morph] checkpoints {moved} moved to {run.path / 'checkpoints.orphaned'}", flush=True)
+    run.truncate_metrics(latest or 0)          # rows after the checkpoint (or of a start that never saved one)
+    if latest is not None:
         print(f"[mjx_morph] resumed from {run.path / 'checkpoints' / str(latest)} (iteration {latest})", flush=True)
     start = int(state.iteration)
     stop = min(trainer.num_iters, start + cfg.stop_after) if cfg.stop_after else trainer.num_iters
@@ -171,7 +187,11 @@ def train(cfg: Any, experiment: Experiment | None = None, callbacks: Sequence[Ca
             if deadline is not None and it > start and time.perf_counter() + 1.5 * slowest > deadline:
                 reason = "time_limit"
                 break
+            if it == start:
+                print("[mjx_morph] compiling the train step (the first iteration includes it)...", flush=True)
             state, row = run_iteration(trainer, state, cfg.phase_timing)
+            if it == start:
+                print(f"[mjx_morph] first iteration, compilation included: {row['wall_s']:.0f} s", flush=True)
             it = int(state.iteration)
             if it > start + 1:             # the first iteration of an invocation includes compilation
                 slowest = max(slowest, row["wall_s"])

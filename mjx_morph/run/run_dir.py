@@ -6,16 +6,28 @@
     <run_dir>/checkpoints/<it>/  Orbax checkpoints of the whole train state
     <run_dir>/learning_curve.png
 
+    <run_dir>/config_history.yaml  changes accepted on a resume (`allow_changes`), in order
+
+Opening a run directory (`RunDir(...)`) writes nothing; `create()` makes the directory and writes config.yaml once
+the caller has validated everything else, so a failed start leaves no trace.
+
 Resuming: rerunning with the same run directory restores the newest checkpoint. Before anything is touched, the
-config is compared with the saved one on the keys that shape the train state (architecture, task, robots, batch
-geometry, model sizes, seed): a mismatch or an unreadable checkpoint raises `RunDirError` naming the file and
-what differs, and the directory is left as it was. Metric rows of iterations after the restored checkpoint (an
-interrupted run's last, unsaved iterations) are moved to `metrics.csv.orphaned` rather than deleted, and are
-logged again by the resumed run.
+config is compared with the saved one: keys that shape the train state (architecture, task, robots, batch geometry,
+model sizes, seed: `identity`) must agree; any other training key (learning rate, epochs, total steps, simulator
+options, ...) must agree too unless the resume names it in `allow_changes`, and then the change is recorded in
+config_history.yaml and config.yaml is updated; only the loop's own keys (`free`: run_dir, stop_after, progress,
+...) may differ silently. A mismatch, an unreadable config or an unreadable checkpoint raises `RunDirError` naming
+the file and what differs, and the directory is left as it was.
+
+Metric rows of iterations after the restored checkpoint (an interrupted run's last, unsaved iterations; all rows of
+a run that crashed before its first checkpoint) are moved to `metrics.csv.orphaned` rather than deleted and are
+logged again by the resumed run; TensorBoard's events are rebuilt from the rows kept (the old ones move to
+`tb.orphaned/`), so neither shows an iteration twice.
 """
 from __future__ import annotations
 
 import csv
+import datetime
 import math
 import shutil
 from pathlib import Path
@@ -43,35 +55,85 @@ def _flatten(d: Mapping, prefix: str = "") -> dict[str, Any]:
     return out
 
 
+def _aside(path: Path) -> Path:
+    """`path`, or `path.N` for the first N that does not exist yet (files set aside are never overwritten)."""
+    if not path.exists():
+        return path
+    n = 1
+    while path.with_name(f"{path.name}.{n}").exists():
+        n += 1
+    return path.with_name(f"{path.name}.{n}")
+
+
+def _number(text: str | None) -> int | float:
+    """A CSV cell back as the number it was logged as (int or float; nan for an empty cell)."""
+    if text in ("", None):
+        return float("nan")
+    try:
+        return int(text)
+    except ValueError:
+        return float(text)
+
+
+def _matches(key: str, prefixes) -> bool:
+    return any(key == p or key.startswith(p + ".") for p in prefixes)
+
+
 class RunDir:
-    def __init__(self, path: str | Path, config: Mapping, identity: tuple[str, ...]):
-        """`identity`: dotted config keys (or key prefixes) that must agree between a run and its resume."""
+    def __init__(self, path: str | Path, config: Mapping | None = None, identity: tuple[str, ...] = (),
+                 free: tuple[str, ...] = (), allow_changes: tuple[str, ...] = ()):
+        """Open the run directory `path` for the run of `config` (a plain dict), writing nothing. With a `config`
+        and a saved config.yaml, the two must agree on every key except the `free` ones; keys (or prefixes) in
+        `allow_changes` may differ unless they are `identity` keys. Without a `config` (readers) nothing is
+        checked."""
         self.path = Path(path).resolve()
-        self.config = dict(config)
-        self.identity = identity
-        cfg_file = self.path / "config.yaml"
-        if cfg_file.exists():
-            try:
-                saved = yaml.safe_load(cfg_file.read_text()) or {}
-            except yaml.YAMLError as e:
-                raise RunDirError(f"{cfg_file}: unreadable config ({e}); nothing was changed") from None
-            self._check_same(saved, cfg_file)
-        self.path.mkdir(parents=True, exist_ok=True)
-        if not cfg_file.exists():
-            cfg_file.write_text(yaml.safe_dump(self.config, sort_keys=False))
+        self.config = dict(config or {})
         self._manager = None
         self._tb = None                  # TensorBoard writer, opened with the first logged row
+        self.changes: list[str] = []     # accepted changes of this resume, "key: old -> new"
+        cfg_file = self.path / "config.yaml"
+        if config is not None and cfg_file.exists():
+            try:
+                saved = yaml.safe_load(cfg_file.read_text()) or {}
+            except (yaml.YAMLError, UnicodeDecodeError) as e:
+                raise RunDirError(f"{cfg_file}: unreadable config ({type(e).__name__}); nothing was changed") from None
+            self._check(saved, cfg_file, identity, free, allow_changes)
 
-    def _check_same(self, saved: Mapping, where: Path) -> None:
+    def _check(self, saved: Mapping, where: Path, identity, free, allowed) -> None:
         a, b = _flatten(saved), _flatten(self.config)
-        diffs = []
+        fixed, changed = [], []
         for key in sorted(set(a) | set(b)):
-            if any(key == p or key.startswith(p + ".") for p in self.identity) and a.get(key) != b.get(key):
-                diffs.append(f"{key}: saved {a.get(key)!r}, now {b.get(key)!r}")
-        if diffs:
+            if a.get(key) == b.get(key) or _matches(key, free):
+                continue
+            diff = f"{key}: saved {a.get(key)!r}, now {b.get(key)!r}"
+            if _matches(key, identity):
+                fixed.append(diff)
+            elif _matches(key, allowed):
+                changed.append(f"{key}: {a.get(key)!r} -> {b.get(key)!r}")
+            else:
+                fixed.append(diff + " (allow_changes=[" + key + "] to accept it)")
+        if fixed:
             raise RunDirError(f"{where}: this run directory belongs to a different run ("
-                              + "; ".join(diffs) + "). Use a new run_dir, or the same settings to resume; "
+                              + "; ".join(fixed) + "). Use a new run_dir, or the same settings to resume; "
                               "nothing was changed")
+        self.changes = changed
+
+    def create(self) -> None:
+        """Make the directory and write config.yaml (a new run), or record this resume's accepted changes."""
+        cfg_file = self.path / "config.yaml"
+        try:
+            self.path.mkdir(parents=True, exist_ok=True)
+            if not cfg_file.exists():
+                cfg_file.write_text(yaml.safe_dump(self.config, sort_keys=False))
+            elif self.changes:
+                entry = {"time": datetime.datetime.now().isoformat(timespec="seconds"),
+                         "iteration": self.latest_step(), "changes": self.changes}
+                with (self.path / "config_history.yaml").open("a") as fh:
+                    fh.write(yaml.safe_dump([entry], sort_keys=False))
+                cfg_file.write_text(yaml.safe_dump(self.config, sort_keys=False))
+        except OSError as e:
+            raise RunDirError(f"{self.path}: cannot write the run directory ({e.strerror or e}); "
+                              "choose another run_dir") from None
 
     # ---- checkpoints ---------------------------------------------------------------------------------------
     @property
@@ -85,6 +147,25 @@ class RunDir:
         if not (self.path / "checkpoints").exists():
             return None
         return self.manager.latest_step()
+
+    def steps(self) -> list[int]:
+        """Iterations of the checkpoints present, ascending."""
+        if not (self.path / "checkpoints").exists():
+            return []
+        return sorted(self.manager.all_steps())
+
+    def set_aside_after(self, step: int) -> list[int]:
+        """Move every checkpoint after `step` to checkpoints.orphaned/ (resuming from an earlier checkpoint)."""
+        later = [k for k in self.steps() if k > step]
+        if later:
+            if self._manager is not None:
+                self._manager.close()
+                self._manager = None
+            dest = self.path / "checkpoints.orphaned"
+            dest.mkdir(exist_ok=True)
+            for k in later:
+                shutil.move(str(self.path / "checkpoints" / str(k)), str(_aside(dest / str(k))))
+        return later
 
     def save(self, step: int, state) -> None:
         """Checkpoint the leaves of `state` (Orbax cannot store zero-size arrays, so those are left out and
@@ -108,9 +189,14 @@ class RunDir:
                 if got[k].shape != a.shape or got[k].dtype != a.dtype:
                     raise ValueError(f"{k}: stored {got[k].shape} {got[k].dtype}, expected {a.shape} {a.dtype}")
         except Exception as e:  # noqa: BLE001 - any failure to read is reported as one user-facing error
+            reason = str(e).strip().splitlines()[0][:160] if isinstance(e, ValueError) else type(e).__name__
+            earlier = [k for k in self.steps() if k < step]
+            hint = (f" To resume from an earlier checkpoint ({', '.join(map(str, earlier))}), rerun with "
+                    f"resume_step={earlier[-1]}: the later checkpoints are then moved to checkpoints.orphaned/."
+                    if earlier else "")
             raise RunDirError(f"{where}: the checkpoint could not be restored into this run's train state "
-                              f"({type(e).__name__}: {str(e)[:300]}). It may be corrupt or from another model; "
-                              "nothing was changed") from None
+                              f"({reason}); it may be corrupt or from another model. Nothing was changed.{hint}"
+                              ) from None
         # uncommitted device arrays, like those of a fresh state: jitted functions then hit their compile cache
         # (Orbax returns committed arrays, which would make every jitted train function compile again)
         return jax.tree_util.tree_unflatten(
@@ -119,7 +205,9 @@ class RunDir:
 
     # ---- metrics -------------------------------------------------------------------------------------------
     def truncate_metrics(self, last_iteration: int) -> None:
-        """Keep metric rows up to `last_iteration`; later rows move to metrics.csv.orphaned."""
+        """Keep the metric rows up to `last_iteration` (0: none, a fresh start); the whole old file moves to
+        metrics.csv.orphaned[.N] and TensorBoard's events to tb.orphaned[.N]/, and the kept rows are logged again
+        into fresh events."""
         f = self.path / "metrics.csv"
         if not f.exists():
             return
@@ -128,11 +216,11 @@ class RunDir:
         keep = [r for r in rows if int(float(r["iteration"])) <= last_iteration]
         if len(keep) == len(rows):
             return
-        shutil.copy(f, f.with_suffix(".csv.orphaned"))
-        with f.open("w", newline="") as fh:
-            w = csv.DictWriter(fh, fieldnames=list(rows[0].keys()))
-            w.writeheader()
-            w.writerows(keep)
+        shutil.move(str(f), str(_aside(f.with_suffix(".csv.orphaned"))))
+        if (self.path / "tb").exists():
+            shutil.move(str(self.path / "tb"), str(_aside(self.path / "tb.orphaned")))
+        for r in keep:
+            self.log({k: _number(v) for k, v in r.items()})
 
     def log(self, row: Mapping[str, float]) -> None:
         f = self.path / "metrics.csv"
