@@ -66,7 +66,10 @@ def evaluated_runs(smoke_run, smoke_run_ff):
     robots again; metamorph on train and test. Shared by the evaluation and report tests."""
     from mjx_morph.eval.evaluate import evaluate_run
     kw = dict(episodes=2, seed=0, zero_state_steps=10, episode_length=EVAL_STEPS, trace_steps=EVAL_STEPS,
-              log=lambda s: None)
+              log=EVAL_LOG.append)
     evaluate_run(smoke_run[0], ["train", "variants", "test:train"], **kw)
     evaluate_run(smoke_run_ff[0], ["train", "test:train"], **kw)
     return smoke_run[0], smoke_run_ff[0]
+
+
+EVAL_LOG: list[str] = []   # what evaluated_runs printed

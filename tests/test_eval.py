@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import json
 import os
+import shutil
 import subprocess
 import sys
 from functools import partial
@@ -20,6 +21,7 @@ from mjx_morph.eval.stats import TASK_RANGES, normalised
 from mjx_morph.eval.sweep import Sweeper, episode_keys
 from mjx_morph.layout import Obs
 from mjx_morph.run import FAST_COMPILE, load_run, make_env_for
+from mjx_morph.unimal.errors import RobotError
 from mjx_morph.unimal.variants import CHANGE_TYPES, variant_change
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -96,6 +98,26 @@ def test_evaluate_run_groups_variants_and_writes_consistent_files(evaluated_runs
     # the recurrent state held at zero for 10 steps changes the later rewards, not the first
     z = np.array(t["reward_trace_zero_state"])
     assert z[0] == pytest.approx(t["reward_trace"][0]) and not np.allclose(z[1:], t["reward_trace"][1:])
+
+
+def test_evaluation_reports_progress_and_checks_its_input_first(evaluated_runs, tmp_path):
+    from conftest import EVAL_LOG
+    lines = [ln for ln in EVAL_LOG if "train:" in ln or ln.startswith("[mjx_morph] train (")]
+    # rmomo on train: size first (2 robots x 2 episodes, and the zero-state sweep), then each chunk, then the result
+    assert lines[0].startswith("[mjx_morph] train: building the env of 2 robots")
+    assert lines[1] == (f"[mjx_morph] train: 8 episodes x {STEPS} steps = {8 * STEPS} env steps in chunks of 4 "
+                        "episodes; the first chunk includes compilation")
+    assert "compilation included" in lines[2] and "compilation included" not in lines[3] and "left" in lines[3]
+    assert lines[3].startswith(f"[mjx_morph]   train: {8 * STEPS:,}/{8 * STEPS:,} env steps")
+    assert lines[4].startswith("[mjx_morph] train (gen/train, 2 robots x 2 episodes): mean return")
+    d = tmp_path / "run"
+    shutil.copytree(evaluated_runs[1], d)
+    shutil.rmtree(d / "eval")
+    for kw, msg in ((dict(episodes=0), "episodes=0: expected a positive number"),
+                    (dict(sets=["no_such_set"]), "no_such_set")):
+        with pytest.raises((ValueError, RobotError), match=msg):
+            evaluate_run(d, **{"sets": ["train"], **kw})
+        assert not (d / "eval").exists()
 
 
 def test_set_names_labels_and_keys_by_robot_name(loaded):

@@ -26,6 +26,7 @@ import time
 from pathlib import Path
 from typing import Callable, Iterable, Sequence
 
+import jax
 import numpy as np
 
 from ..run import FAST_COMPILE, RunConfig, load_run, make_env_for, train_robots
@@ -105,32 +106,45 @@ def evaluate_run(run_dir: str | Path, sets: Iterable[str] = ("train", "test", "v
                  log: Callable[[str], None] = print) -> dict[str, dict]:
     """Evaluate the run's checkpoint `step` (default: newest) on each set; returns {tag: summary} and writes the
     files described in the module docstring."""
+    for key, value, least in (("episodes", episodes, 1), ("zero_state_steps", zero_state_steps, 0),
+                              ("trace_steps", trace_steps, 0), ("max_envs", max_envs, 1),
+                              ("episode_length", episode_length, 1)):
+        if value is not None and value < least:
+            raise ValueError(f"{key}={value}: expected {'a positive number' if least else '0 or more'}")
     run_dir = Path(run_dir)
     loaded = load_run(run_dir, step)
     cfg, model, trainer, ts, step = loaded.config, loaded.experiment.model, loaded.experiment.trainer, \
         loaded.state, loaded.step
     task = cfg.env.task
     env_over = {"episode_length": int(episode_length)} if episode_length else {}
+    eval_sets = [resolve_set(cfg, name) for name in sets]        # every set name is checked before anything is written
     out_dir = run_dir / "eval"
     out_dir.mkdir(exist_ok=True)
     options = FAST_COMPILE if cfg.fast_compile else None
     env_steps = step * trainer.cfg.steps_per_iter
     summaries, sweepers = {}, {}
-    for name in sets:
+    meter = _Meter(log)
+    for es in eval_sets:
         t0 = time.perf_counter()
-        es = resolve_set(cfg, name)
         names = [m.name for m in es.robots]
-        if tuple(names) not in sweepers:       # the same robots under another label: no new env, no recompilation
+        compiling = tuple(names) not in sweepers
+        if compiling:                          # the same robots under another label: no new env, no recompilation
+            log(f"[mjx_morph] {es.tag}: building the env of {len(names)} robots ({es.name})")
             sweepers[tuple(names)] = Sweeper(make_env_for(cfg, es.robots, **env_over), model, trace_steps,
                                              compiler_options=options)
         sweeper = sweepers[tuple(names)]
         groups = es.groups or {None: list(range(len(es.robots)))}
-        chunk = max_envs or max(len(g) for g in groups.values()) * episodes   # one compiled size for all groups
+        # one compiled size for all groups; on a CPU at most CPU_CHUNK episodes per call, so that progress shows
+        chunk = max_envs or max(len(g) for g in groups.values()) * episodes
+        if not max_envs and jax.default_backend() == "cpu":
+            chunk = min(chunk, CPU_CHUNK)
+        sweeps = 1 + int(es.groups is None and model.recurrent and zero_state_steps > 0)
+        meter.start(es.tag, len(names) * episodes * sweeps, sweeper.steps, chunk, compiling)
         results, robot_of, episode_of, per_change = [], [], [], {}
         for change, idx in groups.items():
             r = np.repeat(np.asarray(idx, np.int32), episodes)
             e = np.tile(np.arange(episodes, dtype=np.int32), len(idx))
-            res = sweeper(ts.params, ts.obs_rms, r, e, seed=seed, max_envs=chunk)
+            res = sweeper(ts.params, ts.obs_rms, r, e, seed=seed, max_envs=chunk, progress=meter.chunk)
             results.append(res)
             robot_of.append(r)
             episode_of.append(e)
@@ -146,7 +160,7 @@ def evaluate_run(run_dir: str | Path, sets: Iterable[str] = ("train", "test", "v
         summary["alive_trace"] = (np.arange(res.reward.shape[0])[:, None] < res.length[None, :]).mean(axis=1).tolist()
         if es.groups is None and model.recurrent and zero_state_steps > 0:
             z = sweeper(ts.params, ts.obs_rms, robot_of, episode_of, seed=seed, zero_state_steps=zero_state_steps,
-                        max_envs=chunk)
+                        max_envs=chunk, progress=meter.chunk)
             summary["zero_state_steps"] = int(zero_state_steps)
             summary["reward_trace_zero_state"] = z.reward.mean(axis=1).tolist()
             summary["mean_return_zero_state"] = float(z.ret.mean())
@@ -157,6 +171,38 @@ def evaluate_run(run_dir: str | Path, sets: Iterable[str] = ("train", "test", "v
             f"{summary['mean_return']:.1f} ± {summary['ci95_return']:.1f}, normalised {summary['mean_normalised']:.3f}"
             f"{extra} ({time.perf_counter() - t0:.0f} s)")
     return summaries
+
+
+CPU_CHUNK = 64     # episodes per jitted sweep call on a CPU (progress every few minutes instead of none for hours)
+
+
+class _Meter:
+    """Progress of a set's sweeps: its size before it starts, then after each chunk the env steps/s and the time
+    left (the first chunk of a new program includes its compilation, so later chunks set the estimate)."""
+
+    def __init__(self, log: Callable[[str], None]):
+        self.log, self.rate = log, None           # env steps/s of compiled chunks, kept across sets
+
+    def start(self, tag: str, episodes: int, steps: int, chunk: int, compiling: bool) -> None:
+        self.tag, self.total, self.done, self.compiling = tag, episodes * steps, 0, compiling
+        est = f"; about {_duration(self.total / self.rate)} at {self.rate:,.0f} env steps/s" if self.rate else ""
+        est += "; the first chunk includes compilation" if compiling else ""
+        self.log(f"[mjx_morph] {tag}: {episodes} episodes x {steps} steps = {self.total:,} env steps in chunks of "
+                 f"{chunk} episodes{est}")
+
+    def chunk(self, index: int, count: int, episodes: int, steps: int, seconds: float) -> None:
+        work = episodes * steps
+        self.done += work
+        compiled_here, self.compiling = self.compiling, False
+        if not compiled_here:
+            self.rate = work / seconds
+        left = f", about {_duration((self.total - self.done) / self.rate)} left" if self.rate else ""
+        self.log(f"[mjx_morph]   {self.tag}: {self.done:,}/{self.total:,} env steps ({work / seconds:,.0f}/s"
+                 f"{', compilation included' if compiled_here else ''}){left}")
+
+
+def _duration(seconds: float) -> str:
+    return f"{seconds:.0f} s" if seconds < 120 else f"{seconds / 60:.0f} min"
 
 
 def _write(out_dir: Path, es: EvalSet, res: SweepResult, robot_of: np.ndarray, episode_of: np.ndarray,

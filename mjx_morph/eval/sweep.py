@@ -21,6 +21,7 @@ Large sets run in equal chunks of at most `max_envs` episodes, so one compiled p
 """
 from __future__ import annotations
 
+import time
 from typing import NamedTuple
 
 import jax
@@ -90,7 +91,8 @@ class Sweeper:
         return ep, alive, rewards[: self.trace_steps]
 
     def __call__(self, params, obs_rms, robot_ids, episode_ids, seed: int = 0, zero_state_steps: int = 0,
-                 max_envs: int | None = None) -> SweepResult:
+                 max_envs: int | None = None, progress=None) -> SweepResult:
+        """`progress(index, count, episodes, steps, seconds)` is called after each chunk, if given."""
         robot_ids = np.asarray(robot_ids, np.int32)
         episode_ids = np.asarray(episode_ids, np.int32)
         if robot_ids.shape != episode_ids.shape or robot_ids.ndim != 1:
@@ -106,9 +108,12 @@ class Sweeper:
         parts = []
         for i in range(num_chunks):
             r, e = jnp.asarray(r_all[i * chunk:(i + 1) * chunk]), jnp.asarray(e_all[i * chunk:(i + 1) * chunk])
+            t0 = time.perf_counter()
             keys = episode_keys(seed, self.env, r, e)
             ep, alive, rew = self._run(params, obs_rms, r, keys, jnp.int32(zero_state_steps))
             parts.append(jax.device_get((ep, alive, rew)))
+            if progress is not None:
+                progress(i, num_chunks, chunk, self.steps, time.perf_counter() - t0)
         cat = lambda xs, axis=0: np.concatenate(xs, axis=axis)
         ep = jax.tree.map(lambda *xs: cat(xs)[:n], *[p[0] for p in parts])
         alive = cat([p[1] for p in parts])[:n]
