@@ -67,6 +67,8 @@ def run_case(c: dict) -> dict:
     """One case: `c` holds the keys of BenchEnvConfig with `env` an EnvConfig."""
     name, rs = _robots(c.get("robots"), c.get("robots_root"), c.get("num_robots"), c.get("group"))
     config = c["env"]
+    print(f"[bench_env] {config.task}: building the env of {len(rs)} robots, then compiling and timing...",
+          file=sys.stderr, flush=True)
     t0 = time.perf_counter()
     env = make_env(rs, config=config)
     build_s = time.perf_counter() - t0

@@ -36,6 +36,11 @@ def _memory_gb() -> float:
     return stats.get("peak_bytes_in_use", float("nan")) / 1e9
 
 
+def note(text: str) -> None:
+    """Progress on stderr, so that stdout stays one JSON line per case."""
+    print(f"[bench_train] {text}", file=sys.stderr, flush=True)
+
+
 def bench(cfg: BenchTrainConfig) -> None:
     t0 = time.perf_counter()
     exp = build(cfg)
@@ -55,7 +60,10 @@ def bench(cfg: BenchTrainConfig) -> None:
         jax.block_until_ready(ts.params)
         return ts, m, t1 - t0, time.perf_counter() - t1
 
+    note(f"{model.arch} on {cfg.env.task}: built in {build_s:.0f} s, initial state {init_s:.0f} s; compiling the "
+         f"rollout and the update (the first iteration)...")
     ts, _, compile_rollout, compile_update = one_iteration(ts)  # the first call compiles both phases
+    note(f"compiled ({compile_rollout:.0f} s + {compile_update:.0f} s); timing {cfg.bench_iters} iterations...")
     roll, upd, epochs = [], [], []
     for _ in range(cfg.bench_iters):
         ts, m, r, u = one_iteration(ts)
@@ -70,6 +78,7 @@ def bench(cfg: BenchTrainConfig) -> None:
            "epochs_run_mean": float(np.mean(epochs)), "update_s_per_epoch": float(np.median(upd)) / max(np.mean(epochs), 1e-9),
            "compile_s": {"build": build_s, "init": init_s, "rollout": compile_rollout, "update": compile_update}}
     if cfg.fused:
+        note("compiling and timing the fused iteration...")
         t0 = time.perf_counter()
         ts, _ = trainer.iteration(ts)
         jax.block_until_ready(ts.params)

@@ -54,6 +54,8 @@ def check(a: CheckSimConfig) -> None:
     for it, ls in settings:
         opts = SolverOptions(iterations=it, ls_iterations=ls, self_collision=a.self_collision)
         t0 = time.time()
+        print(f"# comparing {len(rs)} robots with MuJoCo C (solver iterations {it}, line search {ls}; compiling "
+              "the stacked model takes a while)...", flush=True)
         res = fidelity.compare(rs.robots, opts, steps=a.steps, seed=a.seed, tree=tree)
         print(f"# {rs.name}: {len(res)} robots, solver iterations {it}, line search {ls}, "
               f"self-collision {'on' if a.self_collision else 'off'}, {a.steps} control steps "

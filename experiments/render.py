@@ -50,9 +50,11 @@ def render_run(c: RenderConfig) -> Path:
     env, index = find_robot(cfg, exp.env, str(c.robot), c.robots)
     name = env.sm.names[index]
     out = Path(c.out or Path(c.run_dir) / "videos" / f"{name}.mp4")
+    print(f"[mjx_morph] {name}: compiling and running the episode ({c.steps} control steps)...", flush=True)
     record = EpisodeRecorder(env, exp.model, c.steps, compiler_options=FAST_COMPILE if cfg.fast_compile else None)
     qpos, done = record(loaded.state.params, loaded.state.obs_rms, index, c.seed)
     n = episode_frames(done)
+    print(f"[mjx_morph] rendering {n} frames...", flush=True)
     n_frames = render_video(env, index, qpos[:n], out, seed=c.seed, width=c.width, height=c.height, fps=c.fps)
     end = f"episode ended after {n} steps" if done.any() else f"episode still running after {n} steps"
     print(f"[mjx_morph] wrote {out}: {name}, checkpoint {loaded.step}, {n_frames} frames at {c.fps:g} fps ({end}; "

@@ -41,6 +41,8 @@ def report(c: ReportConfig) -> None:
     dirs = find_run_dirs(str(r) for r in runs)
     if not dirs:
         raise ValueError("no run directories given")
+    print(f"[mjx_morph] building the report of {len(dirs)} runs into {c.out} (figures, tables, report.md)...",
+          flush=True)
     path = build_report(dirs, c.out, compare=[str(x) for x in compare], title=str(c.title))
     print(f"[mjx_morph] report: {path} ({len(dirs)} runs)")
 

@@ -156,3 +156,16 @@ def test_context_feature_runs_see_only_their_feature():
     assert sorted(i for c in CONTEXT_GROUPS.values() for i in c) == list(range(35))
     with pytest.raises(ValueError, match="unknown feature"):
         context_mask(["mass"])
+
+
+def test_demo_trains_evaluates_and_reports(tmp_path, capsys):
+    """`make demo`'s program end to end, on the smoke settings (whose compiled train step the smoke runs share)."""
+    from experiments import demo
+    d = demo.demo(["preset=smoke", f"run_dir={tmp_path / 'demo'}", "progress=false"], unseen=2,
+                  episode_length=STEPS)
+    out = capsys.readouterr().out
+    assert "[demo] cpu backend: the CPU demo" in out and "Outputs:" in out
+    assert (d / "learning_curve.png").is_file() and (d / "report" / "report.md").is_file()
+    test = json.loads((d / "eval" / "test.json").read_text())
+    assert test["robots"] == 2 and test["set"] == "gen/test" and (d / "eval" / "train.json").is_file()
+    assert "returns" in (d / "report" / "report.md").read_text().lower()

@@ -100,7 +100,7 @@ def _concat(results: list[SweepResult]) -> SweepResult:
     return SweepResult(*[np.concatenate(xs, axis=-1) for xs in zip(*results)])
 
 
-def evaluate_run(run_dir: str | Path, sets: Iterable[str] = ("train", "test", "variants"), episodes: int = 4,
+def evaluate_run(run_dir: str | Path, sets: Iterable[str | EvalSet] = ("train", "test", "variants"), episodes: int = 4,
                  seed: int = 0, zero_state_steps: int = 100, step: int | None = None, max_envs: int | None = None,
                  episode_length: int | None = None, trace_steps: int = 500,
                  log: Callable[[str], None] = print) -> dict[str, dict]:
@@ -117,7 +117,8 @@ def evaluate_run(run_dir: str | Path, sets: Iterable[str] = ("train", "test", "v
         loaded.state, loaded.step
     task = cfg.env.task
     env_over = {"episode_length": int(episode_length)} if episode_length else {}
-    eval_sets = [resolve_set(cfg, name) for name in sets]        # every set name is checked before anything is written
+    # every set is resolved (names checked, robots read) before anything is written; an EvalSet is taken as it is
+    eval_sets = [name if isinstance(name, EvalSet) else resolve_set(cfg, name) for name in sets]
     out_dir = run_dir / "eval"
     out_dir.mkdir(exist_ok=True)
     options = FAST_COMPILE if cfg.fast_compile else None
