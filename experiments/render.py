@@ -6,7 +6,8 @@
 
 One deterministic episode (the evaluation's episode 0 of that robot for `seed`), up to its end or `steps` control
 steps, rendered offscreen with a camera following the torso (see mjx_morph.eval.video). Needs an OpenGL backend
-(EGL or OSMesa; `MUJOCO_GL` picks one); without one it exits with status 2 and says what to install.
+(EGL or OSMesa; `MUJOCO_GL` picks one); without one it exits with status 2 and says what to install, before it
+loads the run or compiles anything (`unimal.render.check_gl`).
 """
 from __future__ import annotations
 
@@ -20,6 +21,7 @@ from omegaconf import MISSING
 
 from mjx_morph.eval.video import EpisodeRecorder, episode_frames, find_robot, render_video
 from mjx_morph.run import FAST_COMPILE, load_run, register
+from mjx_morph.unimal.render import check_gl
 
 from . import cli
 
@@ -44,6 +46,7 @@ register("render_schema", RenderConfig)
 def render_run(c: RenderConfig) -> Path:
     if c.width % 2 or c.height % 2 or min(c.width, c.height) <= 0:
         raise ValueError(f"width={c.width} height={c.height}: the frame size must be positive and even (H.264)")
+    check_gl()                                # no OpenGL backend: say so now, not after loading and compiling
     t0 = time.perf_counter()
     loaded = load_run(c.run_dir, c.step)
     cfg, exp = loaded.config, loaded.experiment

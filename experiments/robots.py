@@ -2,6 +2,8 @@
 
     python -m experiments.robots info SET_OR_PATH          table of the robots and totals
     python -m experiments.robots validate PATH             one line per problem, non-zero exit if any
+    python -m experiments.robots validate PATH --allow-outside-design-space   ... values beyond the design space
+                                                           are warnings (exit 0)
     python -m experiments.robots generate --out DIR --num N --seed S
     python -m experiments.robots variants SET --out DIR    the 24 dynamics/kinematics variants per robot
     python -m experiments.robots export PATH --out FILE    the project's MJCF for one robot
@@ -9,7 +11,10 @@
 
 SET is a named set (unimal100/train, unimal100/test, unimal100/val, unimal100/test70, gen/train, gen/test,
 <set>/variants) or a path (MetaMorph folder, folder of XML files, one XML file); see mjx_morph.unimal.sets.
-User errors (bad files, unknown sets) print one message and exit with status 2, without a traceback.
+User errors (bad files, unknown sets, no OpenGL backend) print one message and exit with status 2, without a
+traceback. Robots with values far beyond the UNIMAL design space (a 50 m limb, a gear of 1e6: the bounds of
+mjx_morph.unimal.design_space) are refused by every command, and reported by `validate`, unless the command is
+given --allow-outside-design-space.
 """
 from __future__ import annotations
 
@@ -22,6 +27,7 @@ import numpy as np
 
 from mjx_morph.unimal.errors import RobotError
 from mjx_morph.unimal.mjcf import save_set, to_mjcf
+from mjx_morph.unimal.render import RenderUnavailable, check_gl, render_robots
 from mjx_morph.unimal.sets import load_set
 from mjx_morph.unimal.validate import validate_path
 
@@ -29,7 +35,7 @@ from .cli import fail
 
 
 def cmd_info(args) -> int:
-    rs = load_set(args.set, args.root)
+    rs = load_set(args.set, args.root, allow_outside_design_space=args.allow_outside_design_space)
     rows = [(m.name, m.num_limbs, m.dof, m.total_mass, m.tree_depth, m.height) for m in rs.robots]
     width = max(len("robot"), *(len(r[0]) for r in rows))
     print(f"{'robot':<{width}}  limbs  joints  mass(kg)  depth  height(m)")
@@ -44,13 +50,18 @@ def cmd_info(args) -> int:
 
 
 def cmd_validate(args) -> int:
-    problems = validate_path(args.path)
+    problems, warnings, outside = validate_path(args.path,
+                                                allow_outside_design_space=args.allow_outside_design_space)
     for p in problems:
         print(p)
+    for w in warnings:
+        print(f"warning: {w}")
     if problems:
-        print(f"{len(problems)} problem(s)", file=sys.stderr)
+        hint = ("; values outside the UNIMAL design space are accepted with --allow-outside-design-space"
+                if outside and not warnings else "")
+        print(f"{len(problems)} problem(s){hint}", file=sys.stderr)
         return 1
-    print(f"{args.path}: ok")
+    print(f"{args.path}: ok" + (f" ({len(warnings)} warning(s))" if warnings else ""))
     return 0
 
 
@@ -64,7 +75,7 @@ def cmd_generate(args) -> int:
 
 def cmd_variants(args) -> int:
     from mjx_morph.unimal.variants import CHANGE_TYPES, make_variants
-    rs = load_set(args.set, args.root)
+    rs = load_set(args.set, args.root, allow_outside_design_space=args.allow_outside_design_space)
     types = tuple(args.types.split(",")) if args.types else CHANGE_TYPES
     bad = [t for t in types if t not in CHANGE_TYPES]
     if bad:
@@ -76,7 +87,7 @@ def cmd_variants(args) -> int:
 
 
 def cmd_export(args) -> int:
-    rs = load_set(args.path, args.root)
+    rs = load_set(args.path, args.root, allow_outside_design_space=args.allow_outside_design_space)
     if len(rs) != 1:
         raise RobotError(args.path, "", f"export takes one robot; this is a set of {len(rs)}")
     out = Path(args.out)
@@ -87,8 +98,8 @@ def cmd_export(args) -> int:
 
 
 def cmd_gallery(args) -> int:
-    from mjx_morph.unimal.render import render_robots
-    rs = load_set(args.set, args.root)
+    check_gl()                                # no OpenGL backend: say so before reading anything
+    rs = load_set(args.set, args.root, allow_outside_design_space=args.allow_outside_design_space)
     robots = rs.robots[: args.max]
     images = render_robots(robots, size=args.size)
     import matplotlib
@@ -116,10 +127,15 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--root", default=None, help="folder of the original unimals_100 robots "
                    "(default: $MJX_MORPH_UNIMALS, else ../shared/unimals_100)")
     sub = p.add_subparsers(dest="cmd", required=True)
-    s = sub.add_parser("info", help="table of the robots of a set")
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument("--allow-outside-design-space", action="store_true",
+                        help="accept robots with values far beyond the UNIMAL design space (validate: report them "
+                             "as warnings and exit 0); see mjx_morph.unimal.design_space for the bounds")
+    s = sub.add_parser("info", help="table of the robots of a set", parents=[common])
     s.add_argument("set")
     s.set_defaults(fn=cmd_info)
-    s = sub.add_parser("validate", help="check every robot file of a folder (or one file)")
+    s = sub.add_parser("validate", help="check every robot file of a folder (or one file)",
+                       parents=[common])
     s.add_argument("path")
     s.set_defaults(fn=cmd_validate)
     s = sub.add_parser("generate", help="write a new set of generated robots in MetaMorph format")
@@ -127,19 +143,20 @@ def parser() -> argparse.ArgumentParser:
     s.add_argument("--num", type=int, default=100)
     s.add_argument("--seed", type=int, default=0)
     s.set_defaults(fn=cmd_generate)
-    s = sub.add_parser("variants", help="write dynamics/kinematics variants of a set")
+    s = sub.add_parser("variants", help="write dynamics/kinematics variants of a set", parents=[common])
     s.add_argument("set")
     s.add_argument("--out", required=True)
     s.add_argument("--per-type", type=int, default=4)
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--types", default=None, help="comma-separated change types (default: all six)")
     s.set_defaults(fn=cmd_variants)
-    s = sub.add_parser("export", help="write the project's MJCF for one robot")
+    s = sub.add_parser("export", help="write the project's MJCF for one robot", parents=[common])
     s.add_argument("path")
     s.add_argument("--out", required=True)
     s.add_argument("--floor", action="store_true", help="add a ground plane at z = 0")
     s.set_defaults(fn=cmd_export)
-    s = sub.add_parser("gallery", help="a grid of rendered robots (needs an OpenGL backend)")
+    s = sub.add_parser("gallery", help="a grid of rendered robots (needs an OpenGL backend)",
+                       parents=[common])
     s.add_argument("set")
     s.add_argument("--out", required=True)
     s.add_argument("--max", type=int, default=100, help="at most this many robots")
@@ -153,7 +170,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser().parse_args(argv)
     try:
         return args.fn(args)
-    except (RobotError, OSError) as e:
+    except (RobotError, RenderUnavailable, OSError) as e:
         return fail(e)
 
 

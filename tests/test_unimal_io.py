@@ -115,7 +115,7 @@ def test_bad_robot_file_gives_clear_error(robot_dir, case, edit, message):
     with pytest.raises(RobotError, match=message) as info:
         load_robot(path)
     assert str(path) in str(info.value)
-    assert validate_path(robot_dir) == [str(info.value)]
+    assert validate_path(robot_dir).problems == [str(info.value)]
 
 
 def test_too_many_limbs(tmp_path):
@@ -133,7 +133,8 @@ def test_too_many_limbs(tmp_path):
     ({"num_limbs": 4, "dof": 4, "symmetric_limbs": []}, r'"num_limbs": says 4 but .* has 3 limbs'),
     ({"num_limbs": 3, "dof": 5, "symmetric_limbs": []}, r'"dof": says 5 but .* has 4 hinge joints'),
     ({"num_limbs": 3, "dof": 4, "symmetric_limbs": [[0, 7]]}, r'"symmetric_limbs": limb id 7 does not exist'),
-    ({"num_limbs": "3", "dof": 4}, r'"num_limbs": missing or not an integer'),
+    ({"num_limbs": "3", "dof": 4}, r'"num_limbs": expected an integer, got "3"'),
+    ({"num_limbs": 3}, r'"dof": missing; expected an integer'),
 ])
 def test_metadata_contradicting_xml(robot_dir, meta, message):
     meta_path = robot_dir / "metadata" / "tiny.json"

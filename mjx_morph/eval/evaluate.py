@@ -51,7 +51,7 @@ def resolve_set(cfg: RunConfig, name: str) -> EvalSet:
     if ":" in name:                                   # "<tag>:<set>": a set evaluated under another label
         tag, _, inner = name.partition(":")
         return dataclasses.replace(resolve_set(cfg, inner), tag=tag)
-    root = cfg.robots_root
+    root, outside = cfg.robots_root, cfg.allow_outside_design_space
     train_name, trained = train_robots(cfg)
     family = train_name.split("/")[0] if train_name.split("/")[0] in ("unimal100", "gen") else None
     if name == "train":
@@ -64,7 +64,7 @@ def resolve_set(cfg: RunConfig, name: str) -> EvalSet:
         else:
             raise ValueError(f"robots={name}: the run trained on {train_name!r}, which has no {name} set; "
                              f"name one explicitly (e.g. robots=[unimal100/test70])")
-        return EvalSet(name, full, load_set(full, root).robots)
+        return EvalSet(name, full, load_set(full, root, allow_outside_design_space=outside).robots)
     head, _, change = name.partition("/variants")
     if name.startswith("variants") or "/variants" in name:
         if name.startswith("variants"):                  # variants[/<change>] of the robots the run trained on
@@ -73,10 +73,11 @@ def resolve_set(cfg: RunConfig, name: str) -> EvalSet:
             base_name, keep = head, None
         change = change.strip("/")
         full = f"{base_name}/variants" + (f"/{change}" if change else "")
-        robots = [m for m in load_set(full, root).robots if keep is None or variant_change(m.name)[0] in keep]
+        robots = [m for m in load_set(full, root, allow_outside_design_space=outside).robots
+                  if keep is None or variant_change(m.name)[0] in keep]
         groups = {c: [i for i, m in enumerate(robots) if variant_change(m.name)[1] == c] for c in CHANGE_TYPES}
         return EvalSet(name.replace("/", "_"), full, tuple(robots), {c: g for c, g in groups.items() if g})
-    rs = load_set(name, root)
+    rs = load_set(name, root, allow_outside_design_space=outside)
     return EvalSet(name.replace("/", "_"), name, rs.robots)
 
 

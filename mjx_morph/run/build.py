@@ -36,7 +36,7 @@ def train_robots(cfg: RunConfig) -> tuple[str, tuple[Morphology, ...]]:
     """(set name, robots) the run trains on: `robots` (default: the original train set if present, else
     gen/train), the first `num_robots` of them if set."""
     name = cfg.robots or default_train_set(cfg.robots_root)
-    robots = load_set(name, cfg.robots_root).robots
+    robots = load_set(name, cfg.robots_root, allow_outside_design_space=cfg.allow_outside_design_space).robots
     if cfg.num_robots is not None and not 1 <= cfg.num_robots <= len(robots):
         raise ValueError(f"num_robots={cfg.num_robots}: expected 1 to {len(robots)}, the size of {name}")
     return name, tuple(robots[: cfg.num_robots] if cfg.num_robots else robots)

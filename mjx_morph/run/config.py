@@ -53,6 +53,8 @@ class RunConfig:
     robots_root: Optional[str] = None   # folder of the original robots (None: $MJX_MORPH_UNIMALS, else
                                         # ../shared/unimals_100 beside the project)
     num_robots: Optional[int] = None    # use only the first N robots of the set (training-set-size runs)
+    allow_outside_design_space: bool = False   # accept robot files with values far beyond the UNIMAL design space
+                                        # (mjx_morph.unimal.design_space bounds); off: such a file is refused
     total_steps: int = 100_000_000      # env steps (control steps summed over envs); the schedule's horizon
     run_dir: Optional[str] = None       # None: runs/<task>-<arch>-s<seed>; rerun with the same run_dir to resume
     stop_after: Optional[int] = None    # end this invocation after N iterations (with a checkpoint)
@@ -87,7 +89,7 @@ IDENTITY = ("env.task", "env.context_features", "arch", "model", "robots", "robo
             "ppo.num_envs", "ppo.rollout_len", "ppo.window", "ppo.burn_in", "ppo.minibatch_size", "ppo.sampling")
 #: keys of the loop alone, which a resume may change freely; every other key changes only through allow_changes
 FREE = ("run_dir", "stop_after", "time_limit_min", "checkpoint_every", "phase_timing", "fast_compile", "progress",
-        "compile_cache", "allow_changes", "resume_step")
+        "compile_cache", "allow_changes", "resume_step", "allow_outside_design_space")
 
 
 class ConfigError(ValueError):

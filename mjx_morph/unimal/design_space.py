@@ -13,7 +13,8 @@ from +x, φ in 90°, 135°, 180° from +z), with a length parameter h in {0.2, 0
 - one torso density and one limb density per robot, each from {500, 600, ..., 1000}.
 
 `tip_geometry` reads (θ, φ, h) back from a capsule's tip; `topology_key` names the shape of a limb tree (train and
-test sets are kept apart by it).
+test sets are kept apart by it). `outside_bounds` lists the values of a robot far beyond all of this (a 50 m limb,
+a gear of 1e6): generous plausibility bounds that every robot of the design space passes with a wide margin.
 
 Decision where DERL leaves room (ours): `sph2cart` uses exact cos/sin values of multiples of 45°, so it gives the
 same bits on every machine. numpy's sin/cos may differ by an ulp between CPUs, and DERL's 2-decimal rounding hits
@@ -21,6 +22,7 @@ exact ties (0.35 · ½ = 0.175) that such an ulp flips.
 """
 from __future__ import annotations
 
+import math
 from typing import Sequence
 
 import mujoco
@@ -40,6 +42,26 @@ GEARS = (150.0, 200.0, 250.0, 300.0)
 DENSITIES = (500.0, 600.0, 700.0, 800.0, 900.0, 1000.0)
 FLOOR_OFFSET = 0.2                                    # standing height = lowest point's depth + this
 SITES = ("mid", "btm")                                # growth sites of a limb
+
+# ---- plausibility bounds (ours) ---------------------------------------------------------------------------------
+# A robot beyond these is outside the UNIMAL design space by far (`outside_bounds`): the loaders refuse it
+# (`reader.load_robot`, `sets.load_set`) and `experiments.robots validate` reports it. What DERL's value sets above
+# give, and what the 202 original robots, `assets/gen` and their variants (`variants.py`) contain: capsule length
+# r + h = 0.25 .. 0.4525 m, limb radius 0.05 m, torso radius 0.1 m, densities 500 .. 1000 kg/m^3, gears 150 .. 300,
+# joint limits -90 .. 90 degrees with spans of 30 .. 120 degrees, armature = damping = stiffness = 1 (variants:
+# 0.2 .. 5), limb offsets from the parent 0.099 .. 0.51 m, standing heights 0.3 .. 1.05 m. The bounds are generous,
+# 4 to 10 times beyond those values, so that hand-made variations pass and only values that make no sense for this
+# robot family (a 50 m limb, a gear of 1e6, a density of 1e-6) are refused.
+LIMB_LENGTH_BOUNDS = (0.05, 2.0)        # m, capsule segment |tip| (DERL: 0.25 .. 0.4525)
+LIMB_RADIUS_BOUNDS = (0.01, 0.25)       # m (DERL: 0.05)
+TORSO_RADIUS_BOUNDS = (0.02, 0.5)       # m (DERL: 0.1)
+DENSITY_BOUNDS = (100.0, 5000.0)        # kg/m^3, torso and limbs (DERL: 500 .. 1000)
+GEAR_BOUNDS = (30.0, 1500.0)            # motor gear, torque at ctrl = 1 in N m (DERL: 150 .. 300)
+JOINT_LIMIT_MAX = 135.0                 # degrees: -135 <= lo < hi <= 135 (DERL: -90 .. 90)
+JOINT_SPAN_MIN = 5.0                    # degrees, hi - lo (DERL: 30 .. 120)
+JOINT_PARAM_MAX = 50.0                  # armature, damping, stiffness (template: 1; variants: 0.2 .. 5)
+LIMB_OFFSET_MAX = 2.0                   # m, |body pos| in its parent's frame (DERL: 0.099 .. 0.51)
+HEIGHT_MAX = 5.0                        # m, the torso's standing height (DERL: 0.3 .. 1.05)
 
 _R = LIMB_RADIUS
 
@@ -112,3 +134,45 @@ def topology_key(m: Morphology) -> str:
     def key(index: int) -> str:
         return "(" + "".join(sorted(key(c) for c in m.children(index))) + ")"
     return key(TORSO)
+
+
+def outside_bounds(m: Morphology, *, skip_invalid: bool = False) -> list[tuple[str, str]]:
+    """(element, message) for each value of `m` beyond the plausibility bounds above (torso first, then each limb
+    with its joints and motors); empty for every robot of DERL's design space. The element is named as in the robot
+    file (`<body name="limb/2">`, `<joint name="limbx/2">`, `<motor joint="limbx/2">`), so a caller adds the file:
+    `RobotError(file, *item)`. `skip_invalid` leaves out the values that `validate.check_morphology` already
+    reports as meaningless (non-positive sizes, densities and gears, negative armature, damping or stiffness, a
+    range that is not -180 <= lo < hi <= 180), so that a caller running both reports each value once."""
+    out: list[tuple[str, str]] = []
+
+    def add(element: str, what: str, value: float, bounds: tuple[float, float], unit: str = "",
+            invalid: bool = False) -> None:
+        lo, hi = bounds
+        if lo <= value <= hi or (skip_invalid and invalid):
+            return
+        u = f" {unit}" if unit else ""
+        out.append((element, f"{what} {value:g}{u} is outside the UNIMAL design space; expected {lo:g} to {hi:g}{u}"))
+
+    torso = '<body name="torso/0">'
+    add(torso, "standing height", m.height, (-math.inf, HEIGHT_MAX), "m")
+    add(torso, "sphere radius", m.torso_radius, TORSO_RADIUS_BOUNDS, "m", m.torso_radius <= 0)
+    add(torso, "density", m.torso_density, DENSITY_BOUNDS, "kg/m^3", m.torso_density <= 0)
+    for l in m.limbs:
+        body = f'<body name="{l.name}">'
+        add(body, "offset from the parent |pos|", float(np.linalg.norm(l.pos)), (0.0, LIMB_OFFSET_MAX), "m")
+        add(body, "capsule length", l.length, LIMB_LENGTH_BOUNDS, "m", l.length <= 1e-6)
+        add(body, "capsule radius", l.radius, LIMB_RADIUS_BOUNDS, "m", l.radius <= 0)
+        add(body, "density", l.density, DENSITY_BOUNDS, "kg/m^3", l.density <= 0)
+        for j in l.joints:
+            joint = f'<joint name="limb{j.kind}/{l.id}">'
+            lo, hi = j.range
+            if (not -JOINT_LIMIT_MAX <= lo < hi <= JOINT_LIMIT_MAX or hi - lo < JOINT_SPAN_MIN) and not (
+                    skip_invalid and not -180 <= lo < hi <= 180):
+                out.append((joint, f"range ({lo:g}, {hi:g}) degrees is outside the UNIMAL design space; expected "
+                                   f"{-JOINT_LIMIT_MAX:g} <= lo < hi <= {JOINT_LIMIT_MAX:g}, hi - lo >= "
+                                   f"{JOINT_SPAN_MIN:g}"))
+            for attr in ("armature", "damping", "stiffness"):
+                value = getattr(j, attr)
+                add(joint, attr, value, (0.0, JOINT_PARAM_MAX), invalid=value < 0)
+            add(f'<motor joint="limb{j.kind}/{l.id}">', "gear", j.gear, GEAR_BOUNDS, invalid=j.gear <= 0)
+    return out

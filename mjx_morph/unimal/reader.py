@@ -1,9 +1,10 @@
 """Read MetaMorph-format UNIMAL robots into `Morphology` values, validating while reading.
 
 A robot is either a single MJCF file (DERL/MetaMorph template) or an entry of a folder with `xml/<id>.xml` and
-`metadata/<id>.json`. Everything outside the UNIMAL design space raises `RobotError` naming
-the file, the element and what was expected. Only the robot (`torso/0` subtree) and its motors are read; sensors,
-sites, cameras, lights, assets and `<contact>` excludes are ignored, as MetaMorph does when it builds its envs.
+`metadata/<id>.json`. Everything outside the UNIMAL format raises `RobotError` naming the file, the element and
+what was expected; so does a robot with values far beyond the design space (`design_space.outside_bounds`), unless
+the caller allows it. Only the robot (`torso/0` subtree) and its motors are read; sensors, sites, cameras, lights,
+assets and `<contact>` excludes are ignored, as MetaMorph does when it builds its envs.
 """
 from __future__ import annotations
 
@@ -15,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .design_space import outside_bounds
 from .errors import RobotError
 from .morphology import MAX_JOINTS_PER_LIMB, MAX_LIMBS, TORSO, Joint, Limb, Morphology
 
@@ -77,26 +79,52 @@ class _Defaults:
 
 
 def read_metadata(path: Path) -> dict:
-    """The MetaMorph metadata JSON: num_limbs, dof, symmetric_limbs."""
+    """The MetaMorph metadata JSON: num_limbs, dof, symmetric_limbs (integers; JSON `true`/`false` are refused)."""
+    where = str(path)
     try:
-        meta = json.loads(Path(path).read_text())
+        text = Path(path).read_bytes().decode("utf-8")
+    except UnicodeDecodeError as e:
+        raise RobotError(where, "", f"not valid UTF-8 ({_bad_byte(e)}); expected a UTF-8 JSON file") from None
+    except OSError as e:
+        raise RobotError(where, "", f"cannot be read ({e.strerror or e})") from None
+    try:
+        meta = json.loads(text)
     except json.JSONDecodeError as e:
-        raise RobotError(str(path), "", f"malformed JSON ({e.msg} at line {e.lineno})") from None
+        raise RobotError(where, "", f"malformed JSON ({e.msg} at line {e.lineno})") from None
     if not isinstance(meta, dict):
-        raise RobotError(str(path), "", "expected a JSON object with keys num_limbs, dof, symmetric_limbs")
+        raise RobotError(where, "", "expected a JSON object with keys num_limbs, dof, symmetric_limbs")
     for key in ("num_limbs", "dof"):
-        if not isinstance(meta.get(key), int):
-            raise RobotError(str(path), f'"{key}"', "missing or not an integer")
+        if key not in meta:
+            raise RobotError(where, f'"{key}"', "missing; expected an integer")
+        if not _is_int(meta[key]):
+            raise RobotError(where, f'"{key}"', f"expected an integer, got {_short(json.dumps(meta[key]))}")
     pairs = meta.get("symmetric_limbs", [])
     if not isinstance(pairs, list) or not all(
-            isinstance(p, list) and len(p) == 2 and all(isinstance(i, int) for i in p) for p in pairs):
-        raise RobotError(str(path), '"symmetric_limbs"', "expected a list of [int, int] limb-id pairs")
+            isinstance(p, list) and len(p) == 2 and all(_is_int(i) for i in p) for p in pairs):
+        raise RobotError(where, '"symmetric_limbs"', "expected a list of [int, int] limb-id pairs, got "
+                         + _short(json.dumps(pairs)))
     return meta
 
 
-def load_robot(xml_path: str | Path, metadata_path: str | Path | None = None, name: str | None = None) -> Morphology:
+def _bad_byte(e: UnicodeDecodeError) -> str:
+    return f"byte 0x{e.object[e.start]:02x} at offset {e.start}"
+
+
+def _is_int(value) -> bool:
+    """A JSON integer; `bool` is a subclass of `int` in Python, but JSON `true` is not a number."""
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def _short(text: str, limit: int = 60) -> str:
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def load_robot(xml_path: str | Path, metadata_path: str | Path | None = None, name: str | None = None, *,
+               allow_outside_design_space: bool = False) -> Morphology:
     """Read and validate one robot file. If `metadata_path` is None, a sibling `../metadata/<id>.json` is used
-    when it exists (MetaMorph layout); without metadata the robot has no mirror pairs."""
+    when it exists (MetaMorph layout); without metadata the robot has no mirror pairs. A robot with values beyond
+    the plausibility bounds of `design_space.outside_bounds` (a 50 m limb, a gear of 1e6) raises `RobotError` for
+    the first of them, unless `allow_outside_design_space`."""
     xml_path = Path(xml_path)
     where = str(xml_path)
     if not xml_path.is_file():
@@ -105,8 +133,16 @@ def load_robot(xml_path: str | Path, metadata_path: str | Path | None = None, na
         candidate = xml_path.parent.parent / "metadata" / (xml_path.stem + ".json")
         metadata_path = candidate if candidate.is_file() else None
     try:
-        root = ET.parse(xml_path).getroot()
+        data = xml_path.read_bytes()
+    except OSError as e:
+        raise RobotError(where, "", f"cannot be read ({e.strerror or e})") from None
+    try:
+        root = ET.fromstring(data)
     except ET.ParseError as e:
+        try:
+            data.decode("utf-8")
+        except UnicodeDecodeError as u:
+            raise RobotError(where, "", f"not valid UTF-8 ({_bad_byte(u)}); expected a UTF-8 MJCF file") from None
         raise RobotError(where, "", f"malformed XML ({e})") from None
     if root.tag != "mujoco":
         raise RobotError(where, f"<{root.tag}>", "expected an MJCF file with root element <mujoco>")
@@ -177,8 +213,12 @@ def load_robot(xml_path: str | Path, metadata_path: str | Path | None = None, na
                     raise RobotError(mw, '"symmetric_limbs"', f"limb id {i} does not exist in {where}")
         pairs = tuple((int(a), int(b)) for a, b in meta.get("symmetric_limbs", []))
 
-    return Morphology(name=name or xml_path.stem, height=float(torso_pos[2]), limbs=tuple(limbs),
-                      torso_density=torso_density, torso_radius=float(torso_radius), mirror_pairs=pairs)
+    m = Morphology(name=name or xml_path.stem, height=float(torso_pos[2]), limbs=tuple(limbs),
+                   torso_density=torso_density, torso_radius=float(torso_radius), mirror_pairs=pairs)
+    beyond = [] if allow_outside_design_space else outside_bounds(m)
+    if beyond:
+        raise RobotError(where, *beyond[0])
+    return m
 
 
 def _positive(where: str, el: ET.Element, attr: str, text: str) -> float:
@@ -295,6 +335,6 @@ def robot_files(folder: str | Path) -> list[Path]:
     return files
 
 
-def load_folder(folder: str | Path) -> list[Morphology]:
-    """All robots of a folder in MetaMorph format, sorted by id. The first bad file raises."""
-    return [load_robot(f) for f in robot_files(folder)]
+def load_folder(folder: str | Path, *, allow_outside_design_space: bool = False) -> list[Morphology]:
+    """All robots of a folder in MetaMorph format, sorted by id. The first bad file raises (see `load_robot`)."""
+    return [load_robot(f, allow_outside_design_space=allow_outside_design_space) for f in robot_files(folder)]

@@ -1,11 +1,19 @@
 """Offscreen pictures of robots with MuJoCo's renderer.
 
 Headless machines need an OpenGL backend: EGL (libEGL, e.g. Debian `libegl1` with Mesa or the NVIDIA driver) or
-OSMesa (`libosmesa6`). The backend named by `MUJOCO_GL` is tried first, then egl, then osmesa; if none works,
-`RenderUnavailable` says what to install.
+OSMesa (`libosmesa6`). `MUJOCO_GL=egl` or `MUJOCO_GL=osmesa` uses that backend only; otherwise egl is tried, then
+osmesa. PyOpenGL binds one platform per process, at the first backend import, so a backend whose library cannot be
+loaded is never imported (`backend_library`): that keeps the next one usable. If none works, `RenderUnavailable`
+says what to install, on one line. `check_gl` makes (and frees) a small context: commands call it before any slow
+work, so that a missing backend is reported at once, not after loading and compiling.
+
+MuJoCo's own `import mujoco` would import the backend named by MUJOCO_GL, and crash when its library is missing;
+`mjx_morph/__init__.py` imports MuJoCo with that step turned off, so the failure comes here, as `RenderUnavailable`.
 """
 from __future__ import annotations
 
+import ctypes
+import ctypes.util
 import os
 from typing import Sequence
 
@@ -15,31 +23,63 @@ import numpy as np
 from .mjcf import to_mjcf
 from .morphology import Morphology
 
+BACKENDS = ("egl", "osmesa")
+# the shared library PyOpenGL loads for each backend, and the file names it tries (the versioned ones are what a
+# distribution installs without its -dev package)
+BACKEND_LIBRARIES = {"egl": ("EGL", ("libEGL.so", "libEGL.so.1")),
+                     "osmesa": ("OSMesa", ("libOSMesa.so", "libOSMesa.so.8", "libOSMesa.so.6"))}
+INSTALL = ("Install EGL (apt-get install libegl1 libgl1, or an NVIDIA driver) and set MUJOCO_GL=egl, or install "
+           "OSMesa (apt-get install libosmesa6) and set MUJOCO_GL=osmesa")
+
 
 class RenderUnavailable(RuntimeError):
     pass
 
 
+def backend_library(backend: str) -> str | None:
+    """The file name under which the shared library of `backend` ("egl" or "osmesa") loads, None if it does not."""
+    name, files = BACKEND_LIBRARIES[backend]
+    found = ctypes.util.find_library(name)
+    for f in ((found,) if found else ()) + files:
+        try:
+            ctypes.CDLL(f)
+        except OSError:
+            continue
+        return f
+    return None
+
+
+def _one_line(e: BaseException) -> str:
+    return " ".join(f"{type(e).__name__}: {e}".split())
+
+
 def gl_context(width: int, height: int):
-    """A current offscreen GL context (the caller keeps it alive and frees it)."""
-    wanted = os.environ.get("MUJOCO_GL", "").lower()
-    order = [b for b in (wanted, "egl", "osmesa") if b in ("egl", "osmesa")]
+    """A current offscreen GL context (the caller keeps it alive and frees it); `RenderUnavailable` if none."""
+    wanted = os.environ.get("MUJOCO_GL", "").strip().lower()
+    order = (wanted,) if wanted in BACKENDS else BACKENDS
     errors = []
-    for backend in dict.fromkeys(order):
+    for backend in order:
+        if backend_library(backend) is None:
+            name, files = BACKEND_LIBRARIES[backend]
+            errors.append(f"{backend}: lib{name} is not installed ({', '.join(files)} cannot be loaded)")
+            continue
         try:
             if backend == "egl":
-                from mujoco.egl import GLContext
+                from mujoco.egl import GLContext       # imported only now: it binds PyOpenGL to EGL
             else:
-                from mujoco.osmesa import GLContext
+                from mujoco.osmesa import GLContext    # imported only now: it binds PyOpenGL to OSMesa
             ctx = GLContext(width, height)
             ctx.make_current()
             return ctx
         except Exception as e:  # noqa: BLE001 - every backend failure is reported together below
-            errors.append(f"{backend}: {type(e).__name__}: {e}")
-    raise RenderUnavailable(
-        "no OpenGL backend for offscreen rendering (" + "; ".join(errors) + "). Install EGL "
-        "(apt-get install libegl1 libgl1, or an NVIDIA driver) and set MUJOCO_GL=egl, or install OSMesa "
-        "(apt-get install libosmesa6) and set MUJOCO_GL=osmesa.")
+            errors.append(f"{backend}: {_one_line(e)}")
+    chosen = f"MUJOCO_GL={wanted}: only that backend is tried; " if wanted in BACKENDS else ""
+    raise RenderUnavailable(f"no OpenGL backend for offscreen rendering ({chosen}{'; '.join(errors)}). {INSTALL}.")
+
+
+def check_gl() -> None:
+    """Raise `RenderUnavailable` now if no OpenGL context can be made (a 16 x 16 one is made and freed)."""
+    gl_context(16, 16).free()
 
 
 class OffscreenRenderer:

@@ -11,6 +11,8 @@
 | `<set>/variants`  | 24/robot | dynamics and kinematics variants of a set (`<set>/variants/<change>` for one change type) |
 
 Anything else is taken as a path: a MetaMorph folder (`xml/` + `metadata/`), a folder of XML files, or one XML file.
+Robot files with values far beyond the design space (`design_space.outside_bounds`) are refused unless the caller
+allows them (`load_set(..., allow_outside_design_space=True)`).
 
 The original robots are data, never committed: they are read from the folder given by `root=`, else the
 `MJX_MORPH_UNIMALS` environment variable, else `../shared/unimals_100` beside the project when it exists.
@@ -74,14 +76,17 @@ def split_test(ids: list[str], seed: int = SPLIT_SEED, num_val: int = NUM_VAL) -
     return sorted(chosen[:num_val]), sorted(chosen[num_val:])
 
 
-def load_set(name: str, root: str | Path | None = None) -> RobotSet:
-    """Robots of a named set or a path (see the module docstring)."""
+def load_set(name: str, root: str | Path | None = None, *, allow_outside_design_space: bool = False) -> RobotSet:
+    """Robots of a named set or a path (see the module docstring). A robot file with values far beyond the design
+    space (`design_space.outside_bounds`) raises `RobotError` unless `allow_outside_design_space`; every robot of
+    the named sets and their variants is inside."""
+    allow = allow_outside_design_space
     if name.endswith("/variants") or "/variants/" in name:
         base, _, change = name.partition("/variants")
         change = change.strip("/")
         if change and change not in CHANGE_TYPES:
             raise RobotError(name, "", f"unknown change type {change!r}; expected one of {', '.join(CHANGE_TYPES)}")
-        parent = load_set(base, root)
+        parent = load_set(base, root, allow_outside_design_space=allow)
         robots = make_variants(parent.robots, types=(change,) if change else CHANGE_TYPES)
         return RobotSet(name, tuple(robots), parent.source)
     head, _, tail = name.partition("/")
@@ -91,19 +96,19 @@ def load_set(name: str, root: str | Path | None = None) -> RobotSet:
             raise RobotError(name, "", "the original robots are not available: set MJX_MORPH_UNIMALS or robots_root "
                              "to a unimals_100 folder (with train/ and test/), or use gen/train")
         if tail in ("train", "test"):
-            return RobotSet(name, tuple(load_folder(base / tail)), str(base / tail))
-        test = load_folder(base / "test")
+            return RobotSet(name, tuple(load_folder(base / tail, allow_outside_design_space=allow)), str(base / tail))
+        test = load_folder(base / "test", allow_outside_design_space=allow)
         val_ids, test_ids = split_test([m.name for m in test])
         keep = set(val_ids if tail == "val" else test_ids)
         return RobotSet(name, tuple(m for m in test if m.name in keep), str(base / "test"))
     if head == "gen" and tail in GENERATED_SETS:
         folder = ASSETS / "gen" / tail
-        return RobotSet(name, tuple(load_folder(folder)), str(folder))
+        return RobotSet(name, tuple(load_folder(folder, allow_outside_design_space=allow)), str(folder))
     path = Path(name).expanduser()
     if path.is_file():
-        return RobotSet(path.stem, (load_robot(path),), str(path))
+        return RobotSet(path.stem, (load_robot(path, allow_outside_design_space=allow),), str(path))
     if path.is_dir():
-        return RobotSet(path.name, tuple(load_folder(path)), str(path))
+        return RobotSet(path.name, tuple(load_folder(path, allow_outside_design_space=allow)), str(path))
     raise RobotError(name, "", "not a robot set or path; known sets: "
                      + ", ".join([f"unimal100/{s}" for s in ORIGINAL_SETS] + [f"gen/{s}" for s in GENERATED_SETS])
                      + ", <set>/variants[/<change>]")

@@ -1,14 +1,18 @@
 """Design-space checks on `Morphology` values and on robot files.
 
 `load_robot` already rejects files outside the UNIMAL format; `check_morphology` checks a value however it was made
-(reader, generator, variants, user code): tree structure, limits and physically meaningful numbers.
+(reader, generator, variants, user code): tree structure, limits and physically meaningful numbers. `validate_path`
+runs both on files and also lists every value beyond the design space's plausibility bounds
+(`design_space.outside_bounds`), as problems or, when the caller allows such robots, as warnings.
 """
 from __future__ import annotations
 
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
+from .design_space import outside_bounds
 from .errors import RobotError
 from .morphology import MAX_JOINTS_PER_LIMB, MAX_LIMBS, TORSO, Morphology
 from .reader import load_robot, read_metadata, robot_files
@@ -61,29 +65,48 @@ def check_morphology(m: Morphology, where: str | None = None) -> list[str]:
     return out
 
 
-def validate_path(path: str | Path) -> list[str]:
-    """One line per problem for a robot file or every file of a folder (metadata files are checked too)."""
+class Findings(NamedTuple):
+    """What `validate_path` found, one line per item, each naming the file."""
+    problems: list[str]     # errors: the file cannot be used as it is
+    warnings: list[str]     # values outside the design space that the caller allowed
+    outside: list[str]      # the lines about values outside the design space (in `problems` or `warnings`)
+
+
+def validate_path(path: str | Path, *, allow_outside_design_space: bool = False) -> Findings:
+    """Every problem of a robot file or of every file of a folder, metadata files included, each reported once.
+    Values beyond the plausibility bounds (`design_space.outside_bounds`, all of them, not only the first) are
+    problems, or warnings with `allow_outside_design_space`."""
     path = Path(path)
     try:
         files = [path] if path.is_file() else robot_files(path)
     except RobotError as e:
-        return [str(e)]
+        return Findings([str(e)], [], [])
     problems: list[str] = []
+    warnings: list[str] = []
+    outside: list[str] = []
     for f in files:
         try:
-            m = load_robot(f)
+            m = load_robot(f, allow_outside_design_space=True)
         except RobotError as e:
             problems.append(str(e))
             continue
         problems += check_morphology(m, str(f))
+        beyond = [str(RobotError(str(f), element, message)) for element, message in
+                  outside_bounds(m, skip_invalid=True)]
+        outside += beyond
+        if allow_outside_design_space:
+            warnings += beyond
+        else:
+            problems += beyond
     if path.is_dir() and (path / "metadata").is_dir():
         stems = {f.stem for f in files}
         for meta in sorted((path / "metadata").glob("*.json")):
             if meta.stem not in stems:
                 problems.append(f"{meta}: metadata without a robot file xml/{meta.stem}.xml")
-            else:
-                try:
-                    read_metadata(meta)
-                except RobotError as e:
+                continue
+            try:
+                read_metadata(meta)
+            except RobotError as e:
+                if str(e) not in problems:          # not already reported by load_robot of its XML file
                     problems.append(str(e))
-    return problems
+    return Findings(problems, warnings, outside)
