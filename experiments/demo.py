@@ -40,6 +40,11 @@ def demo(extra: list[str], unseen: int | None = None, episode_length: int | None
             f"{cfg.total_steps:,} env steps)" if cpu else
             f"the accelerator configuration (R-MoMo, {cfg.total_steps:,} env steps on gen/train)")
     print(f"[demo] {jax.default_backend()} backend: {what}", flush=True)
+    try:
+        render.check_gl()
+        no_video = None
+    except render.RenderUnavailable as e:
+        no_video = str(e)
     t0 = time.perf_counter()
     run_dir = train(cfg)
     loaded = load_run(run_dir)
@@ -49,18 +54,20 @@ def demo(extra: list[str], unseen: int | None = None, episode_length: int | None
     episodes = 2 if cpu else 4
     evaluate_run(run_dir, ["train", test], episodes=episodes, zero_state_steps=0, episode_length=episode_length,
                  trace_steps=episode_length or 500)
+    print("[demo] building the report (figures, tables, report.md)...", flush=True)
     report = build_report([run_dir], Path(run_dir) / "report", compare=[], title="mjx_morph demo")
     video = None
-    try:
-        render.gl_context(64, 64).free()          # fails fast, before anything compiles, without OpenGL
+    if no_video is None:
         name = test.robots[0].name
+        print(f"[demo] a video of {name} (unseen)...", flush=True)
         env = make_env_for(loaded.config, test.robots[:1])
-        record = EpisodeRecorder(env, loaded.experiment.model, 1000, FAST_COMPILE if loaded.config.fast_compile else None)
+        record = EpisodeRecorder(env, loaded.experiment.model, episode_length or loaded.config.env.episode_length,
+                                 FAST_COMPILE if loaded.config.fast_compile else None)
         qpos, done = record(loaded.state.params, loaded.state.obs_rms, 0)
         video = Path(run_dir) / "videos" / f"{name}.mp4"
         render_video(env, 0, qpos[:episode_frames(done)], video)
-    except render.RenderUnavailable as e:
-        print(f"[demo] no video: {e}", flush=True)
+    else:
+        print(f"[demo] no video: {no_video}", flush=True)
     print(f"[demo] done in {(time.perf_counter() - t0) / 60:.1f} min. Outputs:\n"
           f"  learning curve   {Path(run_dir) / 'learning_curve.png'}\n"
           f"  zero-shot        {Path(run_dir) / 'eval'} (train.json, test.json)\n"

@@ -169,3 +169,4 @@ def test_demo_trains_evaluates_and_reports(tmp_path, capsys):
     test = json.loads((d / "eval" / "test.json").read_text())
     assert test["robots"] == 2 and test["set"] == "gen/test" and (d / "eval" / "train.json").is_file()
     assert "returns" in (d / "report" / "report.md").read_text().lower()
+    assert "[demo] no video:" in out or (d / "videos").is_dir()
