@@ -27,7 +27,7 @@ import math
 
 import numpy as np
 
-from ..unimal.mjcf import _num, _vec  # the writer's exact float formatting
+from ..unimal.mjcf import format_number as _num, format_vector as _vec  # the writer's exact formatting
 from ..unimal.morphology import Joint, Morphology
 from .supertree import SharedTree
 
