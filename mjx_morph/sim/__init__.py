@@ -27,6 +27,10 @@ Public API:
         unstable; meaningful where done)
     sampling.init(R, "balanced" | "uniform"); sampling.update(state, lengths, robots, done); state.probs
 
+Process-wide patches of MJX, made once when this package is imported (below): `contact.install()` (MuJoCo C's
+plane-capsule frames for every MJX step traced in the process; an env with `c_contact_frames=False` traces its own
+step with MJX's frames) and `cpu_linalg.install()` (pure-JAX Cholesky in MJX on CPU with jaxlib < 0.11).
+
 Deviations from MetaMorph / ModuMorph (each documented in its module):
 - solver: 5 Newton iterations and 8 line-search iterations instead of 100 / 50 (env.py; fidelity numbers in
   docs/benchmarks.md); physics in float32;
@@ -55,3 +59,8 @@ with _contextlib.redirect_stdout(_out):
 for _line in _out.getvalue().splitlines():
     if not _WARP_MISSING.fullmatch(_line.strip()):
         print(_line)
+
+from . import contact, cpu_linalg  # noqa: E402  (after the MJX import above)
+
+contact.install()
+cpu_linalg.install()

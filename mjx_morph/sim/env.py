@@ -28,8 +28,9 @@ Options (EnvConfig), each a documented deviation where it differs from MetaMorph
 default 100) and line-search iterations (8, default 50) -- 5 is the fewest with which every original train and test
 robot stays within 1e-3 m of MuJoCo C over 0.5 s (`experiments.check_sim`; at 4, 3 of the 100 train robots drift
 1.5-2.1e-3 m after a contact event, docs/benchmarks.md); self-collision (off; MetaMorph has it on); physics in
-float32 (JAX's default; MetaMorph float64). Contacts otherwise as MetaMorph: condim 3, friction 0.7, pyramidal
-cone, Newton solver, Euler integrator, parent-child filtering, no exclude pairs.
+float32 (JAX's default; MetaMorph float64); plane-capsule contact frames as MuJoCo C (`c_contact_frames`, on;
+`contact.py`). Contacts otherwise as MetaMorph: condim 3, friction 0.7, pyramidal cone, Newton solver, Euler
+integrator, parent-child filtering, no exclude pairs.
 """
 from __future__ import annotations
 
@@ -43,7 +44,7 @@ from mujoco import mjx
 
 from ..layout import NUM_ACTIONS, Obs, Robots, context_mask
 from ..unimal.morphology import Morphology
-from . import contact, cpu_linalg, observation, reward, sampling, terrain
+from . import contact, observation, reward, sampling, terrain
 from .model import StackedModel, Tables, build_stacked_model
 from .padding import SolverOptions, WorldSpec
 from .tasks import EPISODE_LENGTH, FRAME_SKIP, RESET_NOISE, Task, get_task
@@ -107,8 +108,6 @@ class Env:
     def __init__(self, robots: Sequence[Morphology], config: EnvConfig = EnvConfig()):
         self.config = config
         self.task: Task = get_task(config.task)
-        contact.install(config.c_contact_frames)
-        cpu_linalg.install()
         self.morphologies = tuple(robots)
         opts = SolverOptions(iterations=config.iterations, ls_iterations=config.ls_iterations,
                              self_collision=config.self_collision)
@@ -207,11 +206,12 @@ class Env:
         ctrl = jnp.concatenate([act, jnp.zeros((1,), jnp.float32)])[tab.ctrl_src]
         d = self._template.replace(qpos=state.qpos, qvel=state.qvel, qacc_warmstart=state.qacc_warmstart,
                                    ctrl=ctrl)
-        if self.config.unroll_substeps:
-            for _ in range(self.config.substeps):
-                d = mjx.step(m, d)
-        else:
-            d = jax.lax.fori_loop(0, self.config.substeps, lambda i, dd: mjx.step(m, dd), d)
+        with contact.frames(self.config.c_contact_frames):
+            if self.config.unroll_substeps:
+                for _ in range(self.config.substeps):
+                    d = mjx.step(m, d)
+            else:
+                d = jax.lax.fori_loop(0, self.config.substeps, lambda i, dd: mjx.step(m, dd), d)
 
         finite = lambda x: jnp.all(jnp.isfinite(x))
         ok = (finite(d.qpos) & finite(d.qvel) & finite(d.xpos) & finite(d.xquat) & finite(d.cvel)
