@@ -117,7 +117,7 @@ def run_case(c: dict) -> dict:
         "device": dev.device_kind, "jax": jax.__version__,
     }
     if env.task.uses_hfield:
-        res["hfield_patch"] = env.patch
+        res["hfield_patch"] = env.terrain.patch_size
     return res
 
 

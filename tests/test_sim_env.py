@@ -112,7 +112,7 @@ def test_actions_are_masked_and_clamped(bundle):
 def test_fall_terminates(bundle):
     env, _, vstep = bundle
     task = env.task
-    if task.terrain == "incline":
+    if isinstance(env.terrain, terrain.InclinedPlane):
         pytest.skip("incline fall threshold is below the torso radius for these robots "
                     "(tests/test_sim_tree.py::test_reward_and_terminations)")
     st = _reset(bundle)
@@ -218,14 +218,14 @@ def test_hfield_obs_and_torso_height_match_numpy_reference(bundle):
         pytest.skip("no height map in this task")
     st = _reset(bundle, seed=3)
     ts = jax.tree_util.tree_map(lambda x: np.asarray(x[0]), st.terrain)
-    walls = task.terrain == "obstacles"
+    walls = isinstance(env.terrain, terrain.ObstacleField)
     H = (ref.obstacle_H(ts.col, ts.row, ts.sx, ts.sy, ts.valid) if walls else
          ref.corridor_H(ts.seg_end, ts.seg_kind, ts.seg_height, ts.seg_rug, ts.band_end, ts.band_f, ts.band_clip))
     # the reset observation (axis-aligned) at the torso position
     x, y = float(st.qpos[0, 0]), float(st.qpos[0, 1])
     np.testing.assert_allclose(np.asarray(st.obs.hfield[0]), ref.hfield_obs(H, walls, x, y, None), atol=2e-6)
     # rotated grids anywhere in the world (pure terrain function)
-    obs_fn = jax.jit(lambda ts, x, y, a: terrain.hfield_obs(task.terrain, ts, x, y, a))
+    obs_fn = jax.jit(env.terrain.hfield_obs)
     tsj = jax.tree_util.tree_map(lambda x: x[0], st.terrain)
     rng = np.random.default_rng(1)
     for _ in range(20):
@@ -234,7 +234,7 @@ def test_hfield_obs_and_torso_height_match_numpy_reference(bundle):
         got = np.asarray(obs_fn(tsj, jnp.float32(x), jnp.float32(y), jnp.float32(a)))
         assert np.abs(got - want).max() < 2e-6, (x, y, a)
         r, c = ref.torso_idx(H, walls, x, y)
-        ground = float(terrain.ground_height(task, tsj, jnp.float32(x), jnp.float32(y)))
+        ground = float(env.terrain.ground_height(tsj, jnp.float32(x), jnp.float32(y)))
         assert abs(ground - max(0.0, H[r, c])) < 1e-6
 
 
@@ -243,21 +243,22 @@ def test_robot_stands_on_raised_terrain(bundle):
     csr steps segment moves exactly as the same robot dropped onto the flat start (without ground under it, it
     would fall 3 cm further in these 0.08 s)."""
     env, _, vstep = bundle
-    if env.task.terrain != "corridor":
+    if not isinstance(env.terrain, terrain.CorridorField):
         pytest.skip("checked on csr (obstacle uses the same patch code; tests/test_sim_fidelity.py ray-casts both)")
     for seed in range(40):
         st = _reset(bundle, seed=seed)
         ts = jax.tree_util.tree_map(lambda x: np.asarray(x[0]), st.terrain)
         starts = np.r_[0, ts.seg_end[:-1]]
-        steps = [k for k in range(len(ts.seg_end)) if ts.seg_kind[k] == terrain.STEPS and ts.seg_end[k] > starts[k]]
+        steps = [k for k in range(len(ts.seg_end))
+                 if ts.seg_kind[k] == terrain.corridor.STEPS and ts.seg_end[k] > starts[k]]
         if steps:
             break
     else:
         pytest.skip("no steps segment in 40 corridors")
     k = steps[0]
     c = int((starts[k] + ts.seg_end[k]) // 2)
-    top = float(terrain.physical_height("corridor", jax.tree_util.tree_map(lambda x: x[0], st.terrain),
-                                        jnp.int32(c), jnp.int32(200)))
+    top = float(env.terrain.physical_height(jax.tree_util.tree_map(lambda x: x[0], st.terrain),
+                                            jnp.int32(c), jnp.int32(200)))
     assert abs(top - 1.6) < 1e-5
     flat = np.asarray(st.qpos[0]).copy()
     flat[2] -= 0.19                     # robots start with their lowest point ~0.2 m above the ground

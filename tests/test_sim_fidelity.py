@@ -72,23 +72,24 @@ def test_cpu_cholesky_matches_lapack():
 @pytest.mark.parametrize("kind", ["corridor", "obstacles"])
 def test_height_field_patch_is_the_observed_terrain(kind):
     """MuJoCo C ray casts on the physical height-field patch hit the terrain function's cell heights."""
-    p = 41
-    asset, geom = terrain.hfield_world_xml(p)
-    ts = terrain.generate(kind, jax.random.PRNGKey(5))
+    terr = terrain.KINDS[kind](patch_size=41)
+    world = terr.world()
+    asset, geom = world.assets, world.geoms
+    ts = terr.generate(jax.random.PRNGKey(5))
     rng = np.random.default_rng(0)
     for x0, y0 in [(rng.uniform(0, 90), rng.uniform(-18, 18)) for _ in range(3)] + [(95.5, 19.0)]:
-        data, pos = jax.jit(lambda ts, x, y: terrain.patch(kind, ts, x, y, p))(ts, x0, y0)
-        g = geom.replace(f'pos="0 0 {terrain.Z_LO:g}"', 'pos="{} {} {}"'.format(*np.asarray(pos, np.float64)))
+        data, pos = jax.jit(terr.patch)(ts, x0, y0)
+        g = geom.replace(f'pos="0 0 {terrain.grid.Z_LO:g}"', 'pos="{} {} {}"'.format(*np.asarray(pos, np.float64)))
         mm = mujoco.MjModel.from_xml_string(f"<mujoco><asset>{asset}</asset><worldbody>{g}</worldbody></mujoco>")
         mm.hfield_data[:] = np.asarray(data)
         d = mujoco.MjData(mm)
         mujoco.mj_forward(mm, d)
-        ct, rt = terrain.cell_of(np.float32(x0), np.float32(y0))
+        ct, rt = terrain.grid.cell_of(np.float32(x0), np.float32(y0))
         for dc, dr in [(0, 0), (7, -3), (-12, 15), (18, 18), (-18, -17)]:
             c, r = int(ct) + dc, int(rt) + dr
             x = -3 + c / 10 + 0.05
             y = (200 - r) / 10 + 0.05
             geomid = np.zeros(1, np.int32)
             dist = mujoco.mj_ray(mm, d, np.array([x, y, 20.0]), np.array([0, 0, -1.0]), None, 1, -1, geomid)
-            want = float(terrain.physical_height(kind, ts, np.int32(c), np.int32(r)))
+            want = float(terr.physical_height(ts, np.int32(c), np.int32(r)))
             assert abs((20.0 - dist) - want) < 1e-4, (kind, x, y, 20.0 - dist, want)

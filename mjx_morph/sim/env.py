@@ -46,7 +46,7 @@ from ..layout import NUM_ACTIONS, Obs, Robots, context_mask
 from ..unimal.morphology import Morphology
 from . import contact, observation, reward, sampling, terrain
 from .model import StackedModel, Tables, build_stacked_model
-from .padding import SolverOptions, WorldSpec
+from .padding import SolverOptions
 from .tasks import EPISODE_LENGTH, FRAME_SKIP, RESET_NOISE, Task, get_task
 
 
@@ -87,7 +87,7 @@ class EnvState(NamedTuple):
     t: jax.Array                # () int32 control steps taken in this episode
     key: jax.Array
     torso_x: jax.Array          # torso x as last observed (reward baseline)
-    terrain: Any                # terrain.NoTerrain / Corridor / Obstacles
+    terrain: Any                # the episode's terrain state (terrain.NoTerrain / Corridor / Obstacles)
     obs: Obs
     reward: jax.Array           # raw reward of the last transition
     done: jax.Array             # the last transition ended an episode (and the env was reset)
@@ -109,33 +109,19 @@ class Env:
         self.config = config
         self.task: Task = get_task(config.task)
         self.morphologies = tuple(robots)
+        self.terrain: terrain.Terrain = terrain.for_task(self.task, self.morphologies)
         opts = SolverOptions(iterations=config.iterations, ls_iterations=config.ls_iterations,
                              self_collision=config.self_collision)
-        self.patch = terrain.patch_size(self.morphologies) if self.task.uses_hfield else 0
-        self.sm: StackedModel = build_stacked_model(self.morphologies, self._world(), opts)
+        self.sm: StackedModel = build_stacked_model(self.morphologies, self.terrain.world(), opts)
         self.robots: Robots = self.sm.policy
         if config.context_features is not None:
             self.robots = self.robots._replace(context=self.robots.context * context_mask(config.context_features))
         self.tables: Tables = self.sm.tables
         self.num_robots = len(self.morphologies)
         mm = self.sm.mj_models[0]
-        self._hgeom = int(np.nonzero(mm.geom_type == 1)[0][0]) if self.task.uses_hfield else -1  # mjGEOM_HFIELD
+        self._hgeom = int(np.nonzero(mm.geom_type == 1)[0][0]) if self.terrain.uses_hfield else -1  # mjGEOM_HFIELD
         self._template = jax.device_put(mjx.make_data(self.sm.model_for(0), impl="jax"))
-        self.hfield_size = terrain.HFIELD_OBS_SIZE if self.task.hfield_obs else 0
-
-    def _world(self) -> WorldSpec:
-        t = self.task
-        if t.terrain == "plane":
-            return WorldSpec(geoms='    <geom name="floor" type="plane" size="0 0 1" pos="0 0 1" '
-                                   'contype="0" conaffinity="1"/>')
-        if t.terrain == "incline":
-            a = np.radians(t.incline_deg)
-            # the slab's top face: z = 1/cos(a) + tan(a) x
-            return WorldSpec(geoms=f'    <geom name="floor" type="plane" size="0 0 1" pos="0 0 {float(1 / np.cos(a))!r}" '
-                                   f'euler="0 {-float(t.incline_deg)!r} 0" contype="0" conaffinity="1"/>',
-                             incline_deg=t.incline_deg)
-        asset, geom = terrain.hfield_world_xml(self.patch)
-        return WorldSpec(assets=asset, geoms=geom)
+        self.hfield_size = terrain.grid.HFIELD_OBS_SIZE if self.task.hfield_obs else 0
 
     # ---- helpers ---------------------------------------------------------------------------------------------
     def _row(self, tree, robot):
@@ -143,8 +129,8 @@ class Env:
 
     def _model(self, robot, terrain_state, qpos):
         m = self.sm.model_for(robot)
-        if self.task.uses_hfield:
-            data, pos = terrain.patch(self.task.terrain, terrain_state, qpos[0], qpos[1], self.patch)
+        if self.terrain.uses_hfield:
+            data, pos = self.terrain.patch(terrain_state, qpos[0], qpos[1])
             m = m.replace(hfield_data=data, geom_pos=m.geom_pos.at[self._hgeom].set(pos))
         return m
 
@@ -157,7 +143,7 @@ class Env:
             else:
                 xdir = d.xmat[1, :2, 0]
                 yaw = jnp.arctan2(xdir[1], xdir[0])
-            hf = terrain.hfield_obs(self.task.terrain, terrain_state, d.xpos[1, 0], d.xpos[1, 1], yaw)
+            hf = self.terrain.hfield_obs(terrain_state, d.xpos[1, 0], d.xpos[1, 1], yaw)
         else:
             hf = jnp.zeros((0,), jnp.float32)
         return Obs(proprio=prop.astype(jnp.float32), prev_action=prev_action, hfield=hf,
@@ -172,7 +158,7 @@ class Env:
         s = self.config.reset_noise
         qpos = m.qpos0 + jax.random.uniform(kq, m.qpos0.shape, minval=-s, maxval=s) * tab.real_qpos
         qvel = jax.random.uniform(kv, (m.nv,), minval=-s, maxval=s) * tab.real_dof
-        ts = terrain.generate(self.task.terrain, kt)
+        ts = self.terrain.generate(kt)
         obs, torso_x = self._observe(robot, qpos, qvel, ts, jnp.zeros((NUM_ACTIONS,), jnp.float32))
         return EnvState(qpos=qpos, qvel=qvel, qacc_warmstart=jnp.zeros_like(qvel), robot=robot, t=jnp.int32(0),
                         key=knext, torso_x=torso_x, terrain=ts, obs=obs, reward=jnp.float32(0.0),
@@ -217,8 +203,8 @@ class Env:
         ok = (finite(d.qpos) & finite(d.qvel) & finite(d.xpos) & finite(d.xquat) & finite(d.cvel)
               & finite(d.subtree_com) & (jnp.max(jnp.abs(d.qvel)) <= self.config.max_qvel)
               & (jnp.max(jnp.abs(d.qpos[:3])) <= 1.0e4))
-        out = reward.evaluate(self.task, state.terrain, state.torso_x, d.xpos[1], tab.orig_height, raw,
-                              pol.act_mask)
+        out = reward.evaluate(self.task, self.terrain, state.terrain, state.torso_x, d.xpos[1], tab.orig_height,
+                              raw, pol.act_mask)
         t = state.t + 1
         rew = jnp.where(ok, out.reward, 0.0)
         fell = out.fell & ok

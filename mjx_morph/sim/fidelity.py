@@ -26,8 +26,9 @@ from ..unimal.morphology import MAX_NODES, Morphology
 from .model import build_stacked_model
 from .padding import SolverOptions, WorldSpec
 from .supertree import SharedTree
+from .terrain import Plane
 
-FLOOR = '    <geom name="floor" type="plane" size="0 0 1" pos="0 0 1" contype="0" conaffinity="1"/>'
+FLOOR = Plane().world().geoms          # ft's floor: a plane, top z = 1
 TOLERANCE = 1e-3
 
 
