@@ -62,7 +62,7 @@ def _rollout_fn(env: Env, model: Model, steps: int, compiler_options: dict | Non
         def body(c, t):
             state, carry = c
             nxt, carry = policy_step(env, model, params, obs_rms, cache, state, carry, jnp.full((1,), t == 0))
-            return (nxt, carry), (state.qpos[0], nxt.done[0])
+            return (nxt, carry), (state.physics.qpos[0], nxt.done[0])
 
         _, (qpos, done) = jax.lax.scan(body, (state, model.initial_carry(1)), jnp.arange(steps))
         return qpos, done
@@ -177,7 +177,7 @@ def render_frames(env: Env, robot_index: int, qpos: np.ndarray, seed: int = 0, w
     if env.task.uses_hfield:
         r = jnp.asarray([robot_index], jnp.int32)
         reset = jax.jit(env.reset, compiler_options=FAST_COMPILE)      # compiled: 5x faster than eager
-        ts = reset(episode_keys(seed, env, r, jnp.zeros((1,), jnp.int32))[0], r[0]).terrain
+        ts = reset(episode_keys(seed, env, r, jnp.zeros((1,), jnp.int32))[0], r[0]).episode.terrain
         fill = jax.jit(lambda x, y: _render_terrain(env).patch(ts, x, y))
         hgeom = int(np.nonzero(mm.geom_type == mujoco.mjtGeom.mjGEOM_HFIELD)[0][0])
     renderer = render.OffscreenRenderer(mm, width, height)
