@@ -91,17 +91,17 @@ def run_case(c: dict) -> dict:
             def body(carry, k):
                 qpos, qvel, warm = carry
                 ctrl = jnp.clip(0.9 * jax.random.normal(k, (n, sm.mj_models[0].nu)), -1, 1)
-                qpos, qvel, warm = jax.vmap(one)(state.robot, qpos, qvel, warm, ctrl)
+                qpos, qvel, warm = jax.vmap(one)(state.episode.robot, qpos, qvel, warm, ctrl)
                 return (qpos, qvel, warm), qpos[:, 2].mean()
             return jax.lax.scan(body, carry, jax.random.split(key, steps))
 
-        carry = (state.qpos, state.qvel, state.qacc_warmstart)
+        carry = (state.physics.qpos, state.physics.qvel, state.physics.qacc_warmstart)
     else:
         def rollout(carry, key):
             def body(st, k):
                 a = 0.9 * jax.random.normal(k, (n, 24))
                 st = env.vstep(st, a, sampler)
-                return st, (st.reward.sum(), st.done.sum(), (st.done & st.episode.unstable).sum())
+                return st, (st.reward.sum(), st.done.sum(), (st.done & st.ended.unstable).sum())
             return jax.lax.scan(body, carry, jax.random.split(key, steps))
 
         carry = state
@@ -140,7 +140,7 @@ def run_case(c: dict) -> dict:
         "device": dev.device_kind, "jax": jax.__version__,
     }
     if env.task.uses_hfield:
-        res["hfield_patch"] = env.patch
+        res["hfield_patch"] = env.terrain.patch_size
     return res
 
 

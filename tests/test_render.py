@@ -56,7 +56,7 @@ def test_rollout_matches_stepping_by_hand(run):
 
     step = jax.jit(env.step, compiler_options=FAST_COMPILE)
     for t in range(4):
-        np.testing.assert_allclose(qpos[t], np.asarray(state.qpos), atol=1e-4)
+        np.testing.assert_allclose(qpos[t], np.asarray(state.physics.qpos), atol=1e-4)
         mu, carry = act(state, carry, t == 0)
         state = step(state, mu)
         assert bool(state.done) == bool(done[t])

@@ -52,8 +52,9 @@ def _sampler(env):
 
 
 def _set(st, i, **fields):
-    """Copy of batched state `st` with env i's fields replaced."""
-    return st._replace(**{k: getattr(st, k).at[i].set(v) for k, v in fields.items()})
+    """Copy of batched state `st` with env i's physics fields (qpos, qvel) replaced."""
+    ph = st.physics
+    return st._replace(physics=ph._replace(**{k: getattr(ph, k).at[i].set(v) for k, v in fields.items()}))
 
 
 def test_reset(bundle):
@@ -63,14 +64,14 @@ def test_reset(bundle):
     assert st.obs.proprio.shape == (N, 12, 52) and st.obs.prev_action.shape == (N, 24)
     assert st.obs.hfield.shape == ((N, 1410) if task.hfield_obs else (N, 0))
     np.testing.assert_array_equal(st.obs.robot, [0, 1, 0])
-    assert not st.done.any() and (st.t == 0).all() and (st.obs.prev_action == 0).all()
+    assert not st.done.any() and (st.episode.t == 0).all() and (st.obs.prev_action == 0).all()
     pol = jax.tree_util.tree_map(np.asarray, env.robots)
     for i, r in enumerate([0, 1, 0]):
         m = env.morphologies[r]
         prop = np.asarray(st.obs.proprio[i])
         assert np.isfinite(prop).all() and (prop[m.num_nodes:] == 0).all()
         pos, _ = env.sm.world.start_pose(m.height)
-        np.testing.assert_allclose(np.asarray(st.qpos[i, :3]), pos, atol=0.0051)
+        np.testing.assert_allclose(np.asarray(st.physics.qpos[i, :3]), pos, atol=0.0051)
         assert pol.node_mask[r].sum() == m.num_nodes
     if task.hfield_obs:
         assert np.isfinite(np.asarray(st.obs.hfield)).all()
@@ -87,17 +88,17 @@ def test_step_time_limit_and_auto_reset(bundle):
         assert np.isfinite(np.asarray(st.obs.proprio)).all()
         if t < EPISODE:
             assert not st.done.any(), f"an episode ended at step {t} standing still"
-            np.testing.assert_array_equal(st.t, t)
+            np.testing.assert_array_equal(st.episode.t, t)
             # reward = forward speed of the torso
-            dx = np.asarray(st.torso_x - prev.torso_x) / 0.02
+            dx = np.asarray(st.episode.torso_x - prev.episode.torso_x) / 0.02
             if env.task.incline_deg:
                 dx = dx / math.cos(math.radians(env.task.incline_deg))
             np.testing.assert_allclose(st.reward, dx, rtol=1e-4, atol=1e-4)
-    assert st.done.all() and st.truncated.all() and st.episode.timeout.all()
-    assert not st.episode.fell.any() and not st.episode.unstable.any()
-    np.testing.assert_array_equal(st.episode.length, EPISODE)
-    np.testing.assert_array_equal(st.t, 0)                         # auto-reset: a new episode started
-    assert (st.obs.prev_action == 0).all() and (st.ep_return == 0).all()
+    assert st.done.all() and st.truncated.all() and st.ended.timeout.all()
+    assert not st.ended.fell.any() and not st.ended.unstable.any()
+    np.testing.assert_array_equal(st.ended.length, EPISODE)
+    np.testing.assert_array_equal(st.episode.t, 0)                 # auto-reset: a new episode started
+    assert (st.obs.prev_action == 0).all() and (st.episode.ret == 0).all()
 
 
 def test_actions_are_masked_and_clamped(bundle):
@@ -112,19 +113,19 @@ def test_actions_are_masked_and_clamped(bundle):
 def test_fall_terminates(bundle):
     env, _, vstep = bundle
     task = env.task
-    if task.terrain == "incline":
+    if isinstance(env.terrain, terrain.InclinedPlane):
         pytest.skip("incline fall threshold is below the torso radius for these robots "
                     "(tests/test_sim_tree.py::test_reward_and_terminations)")
     st = _reset(bundle)
-    q = np.asarray(st.qpos[0]).copy()
+    q = np.asarray(st.physics.qpos[0]).copy()
     q[2] = 1.0 + 0.105                                  # torso resting on the floor, upside down
     q[3:7] = [0.0, 1.0, 0.0, 0.0]
-    st = _set(st, 0, qpos=jnp.asarray(q), qvel=jnp.zeros_like(st.qvel[0]))
+    st = _set(st, 0, qpos=jnp.asarray(q), qvel=jnp.zeros_like(st.physics.qvel[0]))
     st = vstep(st, jnp.zeros((N, 24)), _sampler(env))
-    assert bool(st.done[0]) and bool(st.episode.fell[0])
-    assert not bool(st.truncated[0]) and not bool(st.episode.unstable[0])
+    assert bool(st.done[0]) and bool(st.ended.fell[0])
+    assert not bool(st.truncated[0]) and not bool(st.ended.unstable[0])
     assert not st.done[1:].any()
-    assert int(st.t[0]) == 0 and int(st.episode.length[0]) == 1
+    assert int(st.episode.t[0]) == 0 and int(st.ended.length[0]) == 1
 
 
 def test_side_limit_terminates(bundle):
@@ -132,44 +133,44 @@ def test_side_limit_terminates(bundle):
     if env.task.side_limit is None:
         pytest.skip("ft has no side limit")
     st = _reset(bundle)
-    q = np.asarray(st.qpos[1]).copy()
+    q = np.asarray(st.physics.qpos[1]).copy()
     q[1] = 19.2
     st = _set(st, 1, qpos=jnp.asarray(q))
     st = vstep(st, jnp.zeros((N, 24)), _sampler(env))
-    assert bool(st.done[1]) and bool(st.episode.out_of_bounds[1]) and not bool(st.truncated[1])
+    assert bool(st.done[1]) and bool(st.ended.out_of_bounds[1]) and not bool(st.truncated[1])
 
 
 def test_instability_resets_and_is_counted(bundle):
     env, _, vstep = bundle
     st = _reset(bundle)
-    v = np.asarray(st.qvel[0]).copy()
+    v = np.asarray(st.physics.qvel[0]).copy()
     v[0] = np.nan
     st = _set(st, 0, qvel=jnp.asarray(v))
-    v2 = np.asarray(st.qvel[2]).copy()
+    v2 = np.asarray(st.physics.qvel[2]).copy()
     v2[6:] = 1e5 * np.asarray(env.tables.real_dof[0, 6:])              # exploding joint velocities
     st = _set(st, 2, qvel=jnp.asarray(v2))
     st = vstep(st, jnp.zeros((N, 24)), _sampler(env))
     for i in (0, 2):
-        assert bool(st.done[i]) and bool(st.episode.unstable[i]) and bool(st.truncated[i])
-        assert not bool(st.episode.fell[i]) and float(st.reward[i]) == 0.0
-        assert int(st.t[i]) == 0
+        assert bool(st.done[i]) and bool(st.ended.unstable[i]) and bool(st.truncated[i])
+        assert not bool(st.ended.fell[i]) and float(st.reward[i]) == 0.0
+        assert int(st.episode.t[i]) == 0
     assert not bool(st.done[1])
     for leaf in jax.tree_util.tree_leaves(st.obs):
         assert np.isfinite(np.asarray(leaf, np.float64)).all()
-    assert np.isfinite(np.asarray(st.qpos)).all() and np.isfinite(np.asarray(st.qvel)).all()
+    assert np.isfinite(np.asarray(st.physics.qpos)).all() and np.isfinite(np.asarray(st.physics.qvel)).all()
 
 
 def test_auto_reset_draws_from_sampler(bundle):
     env, _, vstep = bundle
     st = _reset(bundle, robots=(0, 0, 0))
     sampler = sampling.init(env.num_robots)._replace(probs=jnp.asarray([0.0, 1.0]))
-    v = np.asarray(st.qvel[1]).copy()
+    v = np.asarray(st.physics.qvel[1]).copy()
     v[0] = np.inf
     st = _set(st, 1, qvel=jnp.asarray(v))
     st = vstep(st, jnp.zeros((N, 24)), sampler)
-    assert bool(st.done[1]) and int(st.robot[1]) == 1 and int(st.obs.robot[1]) == 1
-    assert int(st.episode.robot[1]) == 0
-    np.testing.assert_array_equal(np.asarray(st.robot)[[0, 2]], 0)
+    assert bool(st.done[1]) and int(st.episode.robot[1]) == 1 and int(st.obs.robot[1]) == 1
+    assert int(st.ended.robot[1]) == 0
+    np.testing.assert_array_equal(np.asarray(st.episode.robot)[[0, 2]], 0)
 
 
 # ---- observation parity with the NumPy reference on MuJoCo C data --------------------------------------------------
@@ -217,16 +218,16 @@ def test_hfield_obs_and_torso_height_match_numpy_reference(bundle):
     if not task.hfield_obs:
         pytest.skip("no height map in this task")
     st = _reset(bundle, seed=3)
-    ts = jax.tree_util.tree_map(lambda x: np.asarray(x[0]), st.terrain)
-    walls = task.terrain == "obstacles"
+    ts = jax.tree_util.tree_map(lambda x: np.asarray(x[0]), st.episode.terrain)
+    walls = isinstance(env.terrain, terrain.ObstacleField)
     H = (ref.obstacle_H(ts.col, ts.row, ts.sx, ts.sy, ts.valid) if walls else
          ref.corridor_H(ts.seg_end, ts.seg_kind, ts.seg_height, ts.seg_rug, ts.band_end, ts.band_f, ts.band_clip))
     # the reset observation (axis-aligned) at the torso position
-    x, y = float(st.qpos[0, 0]), float(st.qpos[0, 1])
+    x, y = float(st.physics.qpos[0, 0]), float(st.physics.qpos[0, 1])
     np.testing.assert_allclose(np.asarray(st.obs.hfield[0]), ref.hfield_obs(H, walls, x, y, None), atol=2e-6)
     # rotated grids anywhere in the world (pure terrain function)
-    obs_fn = jax.jit(lambda ts, x, y, a: terrain.hfield_obs(task.terrain, ts, x, y, a))
-    tsj = jax.tree_util.tree_map(lambda x: x[0], st.terrain)
+    obs_fn = jax.jit(env.terrain.hfield_obs)
+    tsj = jax.tree_util.tree_map(lambda x: x[0], st.episode.terrain)
     rng = np.random.default_rng(1)
     for _ in range(20):
         x, y, a = rng.uniform(-2, 100), rng.uniform(-19, 19), rng.uniform(-np.pi, np.pi)
@@ -234,7 +235,7 @@ def test_hfield_obs_and_torso_height_match_numpy_reference(bundle):
         got = np.asarray(obs_fn(tsj, jnp.float32(x), jnp.float32(y), jnp.float32(a)))
         assert np.abs(got - want).max() < 2e-6, (x, y, a)
         r, c = ref.torso_idx(H, walls, x, y)
-        ground = float(terrain.ground_height(task, tsj, jnp.float32(x), jnp.float32(y)))
+        ground = float(env.terrain.ground_height(tsj, jnp.float32(x), jnp.float32(y)))
         assert abs(ground - max(0.0, H[r, c])) < 1e-6
 
 
@@ -243,31 +244,32 @@ def test_robot_stands_on_raised_terrain(bundle):
     csr steps segment moves exactly as the same robot dropped onto the flat start (without ground under it, it
     would fall 3 cm further in these 0.08 s)."""
     env, _, vstep = bundle
-    if env.task.terrain != "corridor":
+    if not isinstance(env.terrain, terrain.CorridorField):
         pytest.skip("checked on csr (obstacle uses the same patch code; tests/test_sim_fidelity.py ray-casts both)")
     for seed in range(40):
         st = _reset(bundle, seed=seed)
-        ts = jax.tree_util.tree_map(lambda x: np.asarray(x[0]), st.terrain)
+        ts = jax.tree_util.tree_map(lambda x: np.asarray(x[0]), st.episode.terrain)
         starts = np.r_[0, ts.seg_end[:-1]]
-        steps = [k for k in range(len(ts.seg_end)) if ts.seg_kind[k] == terrain.STEPS and ts.seg_end[k] > starts[k]]
+        steps = [k for k in range(len(ts.seg_end))
+                 if ts.seg_kind[k] == terrain.corridor.STEPS and ts.seg_end[k] > starts[k]]
         if steps:
             break
     else:
         pytest.skip("no steps segment in 40 corridors")
     k = steps[0]
     c = int((starts[k] + ts.seg_end[k]) // 2)
-    top = float(terrain.physical_height("corridor", jax.tree_util.tree_map(lambda x: x[0], st.terrain),
-                                        jnp.int32(c), jnp.int32(200)))
+    top = float(env.terrain.physical_height(jax.tree_util.tree_map(lambda x: x[0], st.episode.terrain),
+                                            jnp.int32(c), jnp.int32(200)))
     assert abs(top - 1.6) < 1e-5
-    flat = np.asarray(st.qpos[0]).copy()
+    flat = np.asarray(st.physics.qpos[0]).copy()
     flat[2] -= 0.19                     # robots start with their lowest point ~0.2 m above the ground
     plateau = flat.copy()
     plateau[0], plateau[1], plateau[2] = -3 + c / 10 + 0.05, 0.0, flat[2] + 0.6
-    zero = jnp.zeros_like(st.qvel[0])
+    zero = jnp.zeros_like(st.physics.qvel[0])
     st = _set(_set(st, 0, qpos=jnp.asarray(plateau), qvel=zero), 2, qpos=jnp.asarray(flat), qvel=zero)
     for _ in range(EPISODE - 1):
         st = vstep(st, jnp.zeros((N, 24)), _sampler(env))
     assert not bool(st.done[0]) and not bool(st.done[2])
-    dz_plateau = float(st.qpos[0, 2]) - plateau[2]
-    dz_flat = float(st.qpos[2, 2]) - flat[2]
+    dz_plateau = float(st.physics.qpos[0, 2]) - plateau[2]
+    dz_flat = float(st.physics.qpos[2, 2]) - flat[2]
     assert abs(dz_plateau - dz_flat) < 5e-3, (dz_plateau, dz_flat)

@@ -163,19 +163,21 @@ def test_reward_and_terminations():
     act = jnp.ones(24)
     mask = jnp.zeros(24, bool).at[2].set(True)
     for name, task in TASKS.items():
-        ts = jax.jit(terrain.generate, static_argnums=0)(task.terrain, jax.random.PRNGKey(0))
-        ground = float(terrain.ground_height(task, ts, jnp.float32(0.31), jnp.float32(0.0)))
+        terr = terrain.for_task(task)
+        ts = jax.jit(terr.generate)(jax.random.PRNGKey(0))
+        ground = float(terr.ground_height(ts, jnp.float32(0.31), jnp.float32(0.0)))
         thr = 0.8 * task.stand_ratio
         x0 = 0.3
         for height, fell in [(thr + 0.01, False), (thr - 0.01, True)]:
             pos = jnp.asarray([x0 + 0.01, 0.0, ground + height], jnp.float32)
-            out = reward.evaluate(task, ts, jnp.float32(x0), pos, orig, act, mask)
+            out = reward.evaluate(task, terr, ts, jnp.float32(x0), pos, orig, act, mask)
             assert bool(out.fell) == fell, (name, height)
             speed = 0.01 / 0.02 / (np.cos(np.radians(task.incline_deg)) if task.incline_deg else 1.0)
             np.testing.assert_allclose(float(out.reward), speed, rtol=1e-3)
-        side = reward.evaluate(task, ts, jnp.float32(x0), jnp.asarray([x0, -19.0, ground + 1.0]), orig, act, mask)
+        side = reward.evaluate(task, terr, ts, jnp.float32(x0), jnp.asarray([x0, -19.0, ground + 1.0]), orig, act,
+                               mask)
         assert bool(side.out_of_bounds) == (task.side_limit is not None)
     # incline ground: MetaMorph's array 1 + tan(10 deg) * floor(10 x) / 10
     inc = TASKS["incline"]
-    g = float(terrain.ground_height(inc, terrain.NoTerrain(), jnp.float32(-71.89), jnp.float32(0.0)))
+    g = float(terrain.for_task(inc).ground_height(terrain.NoTerrain(), jnp.float32(-71.89), jnp.float32(0.0)))
     np.testing.assert_allclose(g, 1 + np.tan(np.radians(10)) * np.floor(-718.9) / 10, atol=1e-3)

@@ -9,37 +9,36 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from mjx_morph.layout import Robots
+from mjx_morph.layout import Obs, Robots
 from mjx_morph.sim import sampling
 
 
-class Obs(NamedTuple):
-    proprio: jax.Array
-    prev_action: jax.Array
-    hfield: jax.Array
-    robot: jax.Array
-
-
 class Episode(NamedTuple):
+    robot: jax.Array
+    t: jax.Array
+    ret: jax.Array
+
+
+class EpisodeStats(NamedTuple):
     ret: jax.Array
     length: jax.Array
     robot: jax.Array
     fell: jax.Array
+    out_of_bounds: jax.Array
     timeout: jax.Array
     unstable: jax.Array
 
 
 class State(NamedTuple):
-    x: jax.Array
-    t: jax.Array
-    robot: jax.Array
-    key: jax.Array
+    """The real EnvState's layout, with the drifting observation as the "physics"."""
+    physics: jax.Array
+    episode: Episode
     obs: Obs
     reward: jax.Array
     done: jax.Array
     truncated: jax.Array
-    ep_return: jax.Array
-    episode: Episode
+    ended: EpisodeStats
+    key: jax.Array
 
 
 class ToyEnv:
@@ -56,27 +55,30 @@ class ToyEnv:
     def reset(self, key, robot):
         k1, k2 = jax.random.split(key)
         x = jax.random.normal(k1, (12, 52)) * self.robots.node_mask[robot][:, None]
-        obs = Obs(x, jnp.zeros(24), jnp.zeros((0,)), robot)
-        z = jnp.float32(0)
-        ep = Episode(z, jnp.int32(0), robot, False, False, False)
-        return State(x, jnp.int32(0), robot, k2, obs, z, jnp.asarray(False), jnp.asarray(False), z, ep)
+        obs = Obs(proprio=x, prev_action=jnp.zeros(24), robot=robot, hfield=jnp.zeros((0,)))
+        z, f = jnp.float32(0), jnp.asarray(False)
+        ended = EpisodeStats(z, jnp.int32(0), robot, f, f, f, f)
+        return State(x, Episode(robot, jnp.int32(0), z), obs, z, f, f, ended, k2)
 
     def step(self, s: State, action, sampler):
         k1, k2, k3, k4 = jax.random.split(s.key, 4)
-        mask = self.robots.act_mask[s.robot]
+        robot = s.episode.robot
+        mask = self.robots.act_mask[robot]
         a = jnp.where(mask, jnp.clip(action, -1, 1), 0.0)
-        x = (0.9 * s.x + 0.3 * jax.random.normal(k1, s.x.shape) + 0.1 * a.reshape(12, 2).sum(-1, keepdims=True))
-        x = x * self.robots.node_mask[s.robot][:, None]
+        x = (0.9 * s.physics + 0.3 * jax.random.normal(k1, s.physics.shape)
+             + 0.1 * a.reshape(12, 2).sum(-1, keepdims=True))
+        x = x * self.robots.node_mask[robot][:, None]
         r = a.sum() * 0.1 + x[0, 0]
-        t = s.t + 1
+        t = s.episode.t + 1
         fell = jax.random.uniform(k2) < self.fall_prob
-        timeout = (t >= self.limits[s.robot]) & ~fell
+        timeout = (t >= self.limits[robot]) & ~fell
         done = fell | timeout
-        ep_ret = s.ep_return + r
-        ep = Episode(ep_ret, t, s.robot, fell, timeout, jnp.asarray(False))
-        cont = State(x, t, s.robot, k3, Obs(x, a, jnp.zeros((0,)), s.robot), r, done, timeout, ep_ret, ep)
+        ret = s.episode.ret + r
+        ended = EpisodeStats(ret, t, robot, fell, jnp.asarray(False), timeout, jnp.asarray(False))
+        obs = Obs(proprio=x, prev_action=a, robot=robot, hfield=jnp.zeros((0,)))
+        cont = State(x, Episode(robot, t, ret), obs, r, done, timeout, ended, k3)
         fresh = self.reset(k4, sampling.sample(k3, sampler, self.num_robots))
-        fresh = fresh._replace(reward=r, done=done, truncated=timeout, episode=ep)
+        fresh = fresh._replace(reward=r, done=done, truncated=timeout, ended=ended)
         return jax.tree.map(lambda f, c: jnp.where(done, f, c), fresh, cont)
 
     def init(self, key, num_envs, sampler=None):

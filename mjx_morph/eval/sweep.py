@@ -75,14 +75,14 @@ class Sweeper:
         state = env.vreset(keys, robot_ids)
         zero = model.initial_carry(n)
         no = jnp.zeros((n,), bool)
-        ep0 = jax.tree.map(lambda x: jnp.zeros((n,), x.dtype), state.episode)
+        ep0 = jax.tree.map(lambda x: jnp.zeros((n,), x.dtype), state.ended)
 
         def body(c, t):
             state, carry, alive, ep = c
             carry = jax.tree.map(lambda z, s: jnp.where(t < zero_state_steps, z, s), zero, carry)
             nxt, carry = policy_step(env, model, params, obs_rms, cache, state, carry, jnp.full((n,), t == 0))
             ends = alive & nxt.done
-            ep = jax.tree.map(lambda e, new: jnp.where(ends, new, e), ep, nxt.episode)
+            ep = jax.tree.map(lambda e, new: jnp.where(ends, new, e), ep, nxt.ended)
             reward = jnp.where(alive, nxt.reward, 0.0)
             return (nxt, carry, alive & ~nxt.done, ep), reward
 

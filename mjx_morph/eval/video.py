@@ -21,12 +21,13 @@ with `unimal.render.OffscreenRenderer`; the camera looks at the torso from the s
 to the right of the picture), its height smoothed against the torso's bounce, at a distance from the robot's size.
 Terrain: ft and incline are the physics' own infinite planes. csr and obstacle simulate a small height-field patch
 that moves with the torso (`sim.terrain`); the video draws a larger one (12 m square) filled from the same terrain
-function (`terrain.patch`), re-centred in 2 m jumps so that its checker stays fixed to the ground: the ground
+function (`env.terrain.patch`), re-centred in 2 m jumps so that its checker stays fixed to the ground: the ground
 within ~5 m of the torso is exactly what the robot stands on, nothing farther is drawn.
 Frames are streamed to ffmpeg (`imageio-ffmpeg`), so a long video never sits in memory.
 """
 from __future__ import annotations
 
+import dataclasses
 import warnings
 from pathlib import Path
 from typing import Iterable, Iterator
@@ -37,7 +38,8 @@ import mujoco
 import numpy as np
 
 from ..nets.model import Model
-from ..sim import padding, terrain
+from ..sim import padding
+from ..sim.terrain import grid
 from ..sim.env import Env
 from ..run import FAST_COMPILE, RunConfig, make_env_for
 from ..unimal import render
@@ -66,7 +68,7 @@ class EpisodeRecorder:
         def body(c, t):
             state, carry = c
             nxt, carry = policy_step(env, model, params, obs_rms, cache, state, carry, jnp.full((1,), t == 0))
-            return (nxt, carry), (state.qpos[0], nxt.done[0])
+            return (nxt, carry), (state.physics.qpos[0], nxt.done[0])
 
         _, (qpos, done) = jax.lax.scan(body, (state, model.initial_carry(1)), jnp.arange(self.steps))
         return qpos, done
@@ -129,12 +131,17 @@ _SCENE = """
 SNAP = 20                # cells: the drawn patch moves in 2 m jumps, so its checker stays fixed to the ground
 
 
+def _render_terrain(env: Env):
+    """The env's height-field terrain with the larger patch the video draws."""
+    return dataclasses.replace(env.terrain, patch_size=RENDER_PATCH)
+
+
 def render_model(env: Env, robot_index: int) -> mujoco.MjModel:
     """MuJoCo model to draw robot `robot_index` of `env` in: its padded MJCF with a textured ground, a sky and
     the gallery's light (a larger height field for csr / obstacle); the qpos layout of
     `env.sm.mj_models[robot_index]`."""
     sm = env.sm
-    world = padding.WorldSpec(*terrain.hfield_world_xml(RENDER_PATCH)) if env.task.uses_hfield else sm.world
+    world = _render_terrain(env).world() if env.task.uses_hfield else sm.world
     xml = padding.padded_mjcf(sm.robots[robot_index], sm.tree, robot_index, world, sm.options)
     xml = xml.replace('type="plane"', 'type="plane" material="grid"').replace(
         'type="hfield"', 'type="hfield" material="hgrid"')
@@ -148,8 +155,8 @@ def render_model(env: Env, robot_index: int) -> mujoco.MjModel:
 
 def _patch_centre(x: float, y: float) -> tuple[float, float]:
     """A point in the cell nearest to (x, y) whose indices are multiples of SNAP."""
-    c, r = (round(float(v) / SNAP) * SNAP for v in terrain.cell_of(jnp.float32(x), jnp.float32(y)))
-    return (c - terrain.START_COL + 0.5) / terrain.DIVS, (terrain.HALF_ROWS - r + 0.5) / terrain.DIVS
+    c, r = (round(float(v) / SNAP) * SNAP for v in grid.cell_of(jnp.float32(x), jnp.float32(y)))
+    return (c - grid.START_COL + 0.5) / grid.DIVS, (grid.HALF_ROWS - r + 0.5) / grid.DIVS
 
 
 def render_frames(env: Env, robot_index: int, qpos: np.ndarray, seed: int = 0, width: int = 640,
@@ -166,8 +173,8 @@ def render_frames(env: Env, robot_index: int, qpos: np.ndarray, seed: int = 0, w
     if env.task.uses_hfield:
         r = jnp.asarray([robot_index], jnp.int32)
         reset = jax.jit(env.reset, compiler_options=FAST_COMPILE)      # compiled: 5x faster than eager
-        ts = reset(episode_keys(seed, env, r, jnp.zeros((1,), jnp.int32))[0], r[0]).terrain
-        fill = jax.jit(lambda x, y: terrain.patch(env.task.terrain, ts, x, y, RENDER_PATCH))
+        ts = reset(episode_keys(seed, env, r, jnp.zeros((1,), jnp.int32))[0], r[0]).episode.terrain
+        fill = jax.jit(lambda x, y: _render_terrain(env).patch(ts, x, y))
         hgeom = int(np.nonzero(mm.geom_type == mujoco.mjtGeom.mjGEOM_HFIELD)[0][0])
     renderer = render.OffscreenRenderer(mm, width, height)
     try:

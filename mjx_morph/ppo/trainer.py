@@ -198,7 +198,7 @@ class Trainer:
         logp = model.log_prob(mu, action, act_mask)
         nxt = self.env.vstep(env_state, action, sampler)
         rew, scaled = rew(nxt.reward, nxt.done, self.cfg.gamma)
-        ep = nxt.episode
+        ep = nxt.ended
         tr = Transition(obs, first, action, logp, value, scaled, nxt.reward, nxt.done, nxt.truncated,
                         ep.ret, ep.length, ep.robot, ep.unstable, ep.fell)
         return ActCarry(nxt, carry, nxt.done, obs_rms, rew), tr

@@ -6,12 +6,15 @@ Data flow (one idea per module):
     model        compile, fix up and stack the padded robots into one mjx.Model with a robot axis;
                  per-robot constants for the policy (`Robots`) and the simulation (`Tables`)
     tasks        the four tasks' constants (ft, incline, csr, obstacle)
-    terrain      per-episode corridors and obstacles, MetaMorph's height array, the moving height-field patch,
-                 the 1410-value height-map observation
+    terrain      one object per kind of ground (plane, inclined plane, csr corridor, obstacle field), chosen from
+                 the task: its world MJCF, per-episode random terrain, ground height, and for csr / obstacle
+                 MetaMorph's height array, the moving height-field patch and the 1410-value height-map observation
+                 (terrain/grid.py, terrain/corridor.py, terrain/obstacles.py)
     observation  the 12 x 52 proprioceptive observation
     reward       reward, fall and side-limit terminations
     sampling     balanced / uniform robot sampling (a state the training loop updates once per iteration)
-    env          `Env`: reset / step / vreset / vstep / init / observe; `make_env`
+    env          `UnimalEnv`: the task (reset / step without reset / observe); `make_env`
+    wrappers     `AutoReset`: auto-reset into a sampled robot, batched vreset / vstep / init (what make_env returns)
     contact      MuJoCo C's plane-capsule contact frames for MJX
     cpu_linalg   pure-JAX Cholesky for MJX on CPU with jaxlib < 0.11 (deadlock workaround)
     fidelity     padded MJX robots against the robots alone in MuJoCo C (`experiments.check_sim`)
@@ -22,21 +25,35 @@ Public API:
     env.reset(key, robot) -> EnvState;  env.step(state, action (24,), sampler=None) -> EnvState
     env.vreset(keys, robots);  env.vstep(states, actions (N,24), sampler);  env.init(key, num_envs, sampler)
     env.observe(robot, qpos, qvel, terrain_state=None, prev_action=None) -> Obs
-    EnvState.obs: Obs(proprio (12,52) raw, prev_action (24,), hfield (1410,) or (0,), robot ())
-    EnvState.reward / done / truncated / episode (Episode: ret, length, robot, fell, out_of_bounds, timeout,
-        unstable; meaningful where done)
+    env.terrain: the task's terrain object;  env.env: the UnimalEnv inside the wrapper
+    EnvState.physics: Physics(qpos, qvel, qacc_warmstart);  EnvState.episode: Episode(robot, t, ret, torso_x,
+        terrain) (the running episode);  EnvState.obs: Obs(proprio (12,52) raw, prev_action (24,), hfield (1410,)
+        or (0,), robot ())
+    EnvState.reward / done / truncated / ended (EpisodeStats of the episode that ended at this step: ret, length,
+        robot, fell, out_of_bounds, timeout, unstable; meaningful where done)
     sampling.init(R, "balanced" | "uniform"); sampling.update(state, lengths, robots, done); state.probs
+
+Process-wide patches of MJX, made once when this package is imported (below): `contact.install()` (MuJoCo C's
+plane-capsule frames for every MJX step traced in the process; an env with `c_contact_frames=False` traces its own
+step with MJX's frames) and `cpu_linalg.install()` (pure-JAX Cholesky in MJX on CPU with jaxlib < 0.11).
 
 Deviations from MetaMorph / ModuMorph (each documented in its module):
 - solver: 5 Newton iterations and 8 line-search iterations instead of 100 / 50 (env.py; fidelity numbers in
   docs/benchmarks.md); physics in float32;
-- self-collision off by default (MetaMorph: on; option `self_collision`, ~11x slower);
+- self-collision off by default (MetaMorph: on; option `self_collision`; its cost in docs/benchmarks.md);
 - ft / incline floors are infinite planes (tasks.py); csr / obstacle use one moving 0.1 m height-field patch
-  built from MetaMorph's height array, so observation and physics agree: no rugged-square y-mirror, obstacles
-  are columns standing on the floor instead of boxes floating 0.1 m above it (terrain.py);
+  built from MetaMorph's height array, so observation and physics agree: no rugged-square y-mirror
+  (terrain/corridor.py), obstacles are columns standing on the floor instead of boxes floating 0.1 m above it
+  (terrain/obstacles.py), terrain contacts use MJX's height-field collider (terrain/__init__.py);
 - capsule masses of MuJoCo >= 2.1 (3-5% above MuJoCo 2.0) (padding.py);
 - a NaN or exploding state ends the episode as `unstable` (MetaMorph: a MuJoCo exception silently skipped the
   remaining substeps) (env.py);
 - plane-capsule contact frames follow MuJoCo C, not MJX 3.17 (contact.py);
 - body_xvelp / body_xvelr are mujoco-py's (velocity of the body origin), as MetaMorph read them (observation.py).
 """
+# MJX is patched once, when this package is imported (the missing-Warp message was silenced by mjx_morph's
+# own import): MuJoCo C's plane-capsule contact frames (contact.py) and, on old CPU jaxlibs, a pure-JAX Cholesky.
+from . import contact, cpu_linalg  # noqa: E402
+
+contact.install()
+cpu_linalg.install()

@@ -8,20 +8,29 @@ degrees, which is most of a standing UNIMAL's legs; the two then apply different
 trajectories part by centimetres within 0.5 s (measured: 2e-3 m after 9 control steps for a train robot at
 MuJoCo's default solver settings, 1e-5 m with this fix).
 
-`install()` replaces MJX's (plane, capsule) collider by one with MuJoCo C's frame rule. It patches a private table
-of the pinned mujoco-mjx (3.17.0), idempotently, and only changes the tangent frame of plane-capsule contacts; the
-environment installs it when it builds its model (option `c_contact_frames`, default on). Sphere-plane contacts
-already agree (MJX's `make_frame` picks (0, 1, 0) like `mju_makeFrame`). Height-field and box contacts have no
-MuJoCo C counterpart of the same algorithm in MJX and are left alone.
+How it is installed: MJX looks its colliders up in a private, process-wide table (`collision_driver._COLLISION_FUNC`
+of the pinned mujoco-mjx) while a step is traced. `install()`, called once when `mjx_morph.sim` is imported, puts
+one (plane, capsule) collider there that uses MuJoCo C's frame rule, or MJX's own collider while a step is traced
+inside `frames(False)`. So every MJX step traced in this process gets MuJoCo C's frames (the env, the fidelity
+check, benchmarks), and an env built with `EnvConfig.c_contact_frames=False` traces its own physics inside
+`frames(False)` and gets MJX's frames, whatever other envs exist in the process. Only the tangent frame of
+plane-capsule contacts changes. Sphere-plane contacts already agree (MJX's `make_frame` picks (0, 1, 0) like
+`mju_makeFrame`). Height-field and box contacts have no MuJoCo C counterpart of the same algorithm in MJX and are
+left alone.
 """
 from __future__ import annotations
 
-import jax
+import contextlib
+import contextvars
+from typing import Iterator
+
 import jax.numpy as jnp
 from mujoco.mjx._src import collision_driver, collision_primitive
 from mujoco.mjx._src.types import GeomType
 
-_ORIGINAL = collision_driver._COLLISION_FUNC[(GeomType.PLANE, GeomType.CAPSULE)]
+_KEY = (GeomType.PLANE, GeomType.CAPSULE)
+_MJX = collision_primitive.plane_capsule                 # MJX's own collider (the table's entry before `install`)
+_C_FRAMES = contextvars.ContextVar("mjx_morph_c_contact_frames", default=True)
 
 
 @collision_primitive.collider(ncon=2)
@@ -43,10 +52,25 @@ def plane_capsule(plane, cap):
     return jnp.stack(dists), jnp.stack(poss), jnp.stack([frame, frame])
 
 
-def install(enable: bool = True) -> None:
-    """Use MuJoCo C's plane-capsule frames in MJX (enable=False restores MJX's own collider)."""
-    collision_driver._COLLISION_FUNC[(GeomType.PLANE, GeomType.CAPSULE)] = plane_capsule if enable else _ORIGINAL
+def _plane_capsule(m, d, key, geom):
+    """The installed collider: MuJoCo C's frames, or MJX's inside `frames(False)` (decided while tracing)."""
+    return (plane_capsule if _C_FRAMES.get() else _MJX)(m, d, key, geom)
 
 
-def installed() -> bool:
-    return collision_driver._COLLISION_FUNC[(GeomType.PLANE, GeomType.CAPSULE)] is plane_capsule
+_plane_capsule.ncon = 2
+assert _MJX.ncon == plane_capsule.ncon == 2
+
+
+def install() -> None:
+    """Put the plane-capsule collider into MJX's collision table (idempotent; done at import of mjx_morph.sim)."""
+    collision_driver._COLLISION_FUNC[_KEY] = _plane_capsule
+
+
+@contextlib.contextmanager
+def frames(c_frames: bool) -> Iterator[None]:
+    """Trace the MJX steps inside this block with MuJoCo C's (True) or MJX's own (False) plane-capsule frames."""
+    token = _C_FRAMES.set(bool(c_frames))
+    try:
+        yield
+    finally:
+        _C_FRAMES.reset(token)

@@ -7,10 +7,12 @@ hangs at 0% CPU (seen here with MJX's Newton solver vmapped over 60 robots on th
 all pool threads in `BlockingCounter::Wait` under `CholeskyFactorization`). jaxlib 0.11 compiles that parallel
 path out of open-source builds, and GPUs never take it.
 
-`install()` gives MJX's modules that factor or solve with Cholesky (smooth, solver, forward) a view of `jax` in
-which `jax.scipy.linalg.cho_factor` / `cho_solve` are plain JAX loops (`lax.fori_loop` over the columns; exact
-to float rounding, O(n^3) like LAPACK, fine for the nv <= ~60 of padded UNIMALs). Only those three MJX modules
-see it, only when the default backend is CPU and jaxlib is older than 0.11; everything else is untouched.
+`install()`, called once when `mjx_morph.sim` is imported, gives MJX's modules that factor or solve with Cholesky
+(smooth, solver, forward) a view of `jax` in which `jax.scipy.linalg.cho_factor` / `cho_solve` are plain JAX loops
+(`lax.fori_loop` over the columns; exact to float rounding, O(n^3) like LAPACK, fine for the nv <= ~60 of padded
+UNIMALs) when the default backend is CPU, and JAX's own functions otherwise; the backend is looked at while a step
+is traced, so importing the package does not initialise JAX's backends. Only those three MJX modules see the
+view, only with jaxlib older than 0.11 (nothing is installed otherwise); everything else is untouched.
 """
 from __future__ import annotations
 
@@ -78,24 +80,40 @@ class _Namespace(types.SimpleNamespace):
         return getattr(self._base, name)
 
 
-def _needed() -> bool:
+def _affected_jaxlib() -> bool:
     try:
         major, minor = (int(x) for x in jax.__version__.split(".")[:2])
     except ValueError:
         return False
-    return jax.default_backend() == "cpu" and (major, minor) < (0, 11)
+    return (major, minor) < (0, 11)
 
 
-def install(force: bool = False) -> bool:
-    """Give MJX's Cholesky users the pure-JAX versions (CPU + jaxlib < 0.11 only, unless `force`).
-    Idempotent; returns whether the workaround is active."""
+def _pure_jax() -> bool:
+    return jax.default_backend() == "cpu"
+
+
+def _mjx_cho_factor(a, lower=False, overwrite_a=False, check_finite=True):
+    f = cho_factor if _pure_jax() else _JAX_CHO_FACTOR
+    return f(a, lower=lower, overwrite_a=overwrite_a, check_finite=check_finite)
+
+
+def _mjx_cho_solve(c_and_lower, b, overwrite_b=False, check_finite=True):
+    f = cho_solve if _pure_jax() else _JAX_CHO_SOLVE
+    return f(c_and_lower, b, overwrite_b=overwrite_b, check_finite=check_finite)
+
+
+_JAX_CHO_FACTOR, _JAX_CHO_SOLVE = jax.scipy.linalg.cho_factor, jax.scipy.linalg.cho_solve
+
+
+def install() -> bool:
+    """Give MJX's Cholesky users the view (jaxlib < 0.11 only). Idempotent; returns whether it is installed."""
     global _INSTALLED
     if _INSTALLED:
         return True
-    if not (force or _needed()):
+    if not _affected_jaxlib():
         return False
     from mujoco.mjx._src import forward, smooth, solver
-    linalg = _Namespace(jax.scipy.linalg, cho_factor=cho_factor, cho_solve=cho_solve)
+    linalg = _Namespace(jax.scipy.linalg, cho_factor=_mjx_cho_factor, cho_solve=_mjx_cho_solve)
     scipy = _Namespace(jax.scipy, linalg=linalg)
     view = _Namespace(jax, scipy=scipy)
     for mod in (forward, smooth, solver):

@@ -1,4 +1,4 @@
-"""The batched UNIMAL environment: pure `reset` / `step` functions over one stacked MJX model.
+"""The UNIMAL environment: pure `reset` / `step` functions over one stacked MJX model, in two layers.
 
     env = make_env("unimal100/train", "ft")                  # or a RobotSet, a list of Morphology, a path
     sampler = sampling.init(env.num_robots, "balanced")
@@ -6,10 +6,10 @@
     state = env.vstep(state, action, sampler)                 # = jax.vmap(env.step, (0, 0, None))
     # inside the PPO: lax.scan over env.vstep; sampler = sampling.update(sampler, ...) once per iteration
 
-Single-env functions (vmap them, or use `vreset`/`vstep`):
+`UnimalEnv` is the task (single-env functions; vmap them):
     reset(key, robot) -> EnvState         the robot's start pose + U(-0.005, 0.005) noise on every real qpos and
                                           qvel entry (quaternion not re-normalised, as MetaMorph), a new terrain
-    step(state, action, sampler=None) -> EnvState
+    step(state, action) -> EnvState       one control step, the transition only (no reset):
         1. the action (24,) is masked, clamped to [-1, 1] (MuJoCo's ctrlrange) and scattered to the actuators;
         2. for csr/obstacle the height-field patch is re-centred under the torso;
         3. 4 MJX physics substeps (control dt 0.02 s);
@@ -17,19 +17,24 @@ Single-env functions (vmap them, or use `vreset`/`vstep`):
            inf anywhere in qpos/qvel or the body kinematics, |qvel| > max_qvel, or the torso farther than 1e4 m
            ends the episode with unstable = True (counted in the episode stats, not as a fall, reward 0,
            `truncated` = True so that PPO does not treat it as a true terminal); nothing of that state reaches the
-           observation;
-        5. on any episode end the env resets itself at once into a robot drawn from `sampler.probs` (uniform
-           without a sampler) with a new terrain; the returned observation is the new episode's first one, as in
-           MetaMorph's vectorised envs.
-The returned state's `reward`, `done`, `truncated` and `episode` describe the transition just taken; `episode`
-is meaningful where `done` (return, length, robot, fell, out_of_bounds, timeout, unstable).
+           observation (the physics state is zeroed).
+`make_env` wraps it in `wrappers.AutoReset` (the `Env` that training and evaluation use): its `step(state, action,
+sampler=None)` at once resets an env whose episode ended into a robot drawn from `sampler.probs` (uniform without
+a sampler) with a new terrain, so the returned observation is the new episode's first one, as in MetaMorph's
+vectorised envs; it adds the batched `vreset`, `vstep` and `init`.
+
+EnvState groups the physics (qpos, qvel, qacc_warmstart), the running episode (robot, t, return, torso x, terrain
+state), the observation, and the transition just taken: `reward`, `done`, `truncated` and `ended`, the statistics
+of the episode that ended at this step (return, length, robot, fell, out_of_bounds, timeout, unstable; meaningful
+where `done`).
 
 Options (EnvConfig), each a documented deviation where it differs from MetaMorph: solver iterations (5, MuJoCo's
 default 100) and line-search iterations (8, default 50) -- 5 is the fewest with which every original train and test
 robot stays within 1e-3 m of MuJoCo C over 0.5 s (`experiments.check_sim`; at 4, 3 of the 100 train robots drift
 1.5-2.1e-3 m after a contact event, docs/benchmarks.md); self-collision (off; MetaMorph has it on); physics in
-float32 (JAX's default; MetaMorph float64). Contacts otherwise as MetaMorph: condim 3, friction 0.7, pyramidal
-cone, Newton solver, Euler integrator, parent-child filtering, no exclude pairs.
+float32 (JAX's default; MetaMorph float64); plane-capsule contact frames as MuJoCo C (`c_contact_frames`, on;
+`contact.py`). Contacts otherwise as MetaMorph: condim 3, friction 0.7, pyramidal cone, Newton solver, Euler
+integrator, parent-child filtering, no exclude pairs.
 """
 from __future__ import annotations
 
@@ -43,10 +48,12 @@ from mujoco import mjx
 
 from ..layout import NUM_ACTIONS, Obs, Robots, context_mask
 from ..unimal.morphology import Morphology
-from . import contact, cpu_linalg, observation, reward, sampling, terrain
+from ..unimal.sets import RobotSet, load_set
+from . import contact, observation, reward, terrain
 from .model import StackedModel, Tables, build_stacked_model
-from .padding import SolverOptions, WorldSpec
+from .padding import SolverOptions
 from .tasks import EPISODE_LENGTH, FRAME_SKIP, RESET_NOISE, Task, get_task
+from .wrappers import AutoReset
 
 
 @dataclasses.dataclass
@@ -67,7 +74,23 @@ class EnvConfig:
                                                    # mjx_morph.layout.CONTEXT_GROUPS, the others zeroed
 
 
+class Physics(NamedTuple):
+    """The MJX state carried from one control step to the next (padded layout of the shared tree)."""
+    qpos: jax.Array
+    qvel: jax.Array
+    qacc_warmstart: jax.Array
+
+
 class Episode(NamedTuple):
+    """The running episode."""
+    robot: jax.Array            # () int32
+    t: jax.Array                # () int32 control steps taken in this episode
+    ret: jax.Array              # return so far
+    torso_x: jax.Array          # torso x as last observed (reward baseline)
+    terrain: Any                # the episode's terrain state (terrain.NoTerrain / Corridor / Obstacles)
+
+
+class EpisodeStats(NamedTuple):
     """Statistics of the episode that ended at this step (meaningful where `EnvState.done`)."""
     ret: jax.Array
     length: jax.Array
@@ -79,64 +102,44 @@ class Episode(NamedTuple):
 
 
 class EnvState(NamedTuple):
-    qpos: jax.Array
-    qvel: jax.Array
-    qacc_warmstart: jax.Array
-    robot: jax.Array            # () int32
-    t: jax.Array                # () int32 control steps taken in this episode
-    key: jax.Array
-    torso_x: jax.Array          # torso x as last observed (reward baseline)
-    terrain: Any                # terrain.NoTerrain / Corridor / Obstacles
+    physics: Physics
+    episode: Episode
     obs: Obs
     reward: jax.Array           # raw reward of the last transition
-    done: jax.Array             # the last transition ended an episode (and the env was reset)
+    done: jax.Array             # the last transition ended an episode
     truncated: jax.Array        # ... by the time limit or instability (not a true terminal)
-    ep_return: jax.Array        # running return of the current episode
-    episode: Episode
+    ended: EpisodeStats         # the episode the last transition ended (meaningful where `done`)
+    key: jax.Array
 
 
-def _zeros_episode() -> Episode:
+def _no_stats() -> EpisodeStats:
     z = jnp.float32(0.0)
     f = jnp.asarray(False)
-    return Episode(ret=z, length=jnp.int32(0), robot=jnp.int32(0), fell=f, out_of_bounds=f, timeout=f, unstable=f)
+    return EpisodeStats(ret=z, length=jnp.int32(0), robot=jnp.int32(0), fell=f, out_of_bounds=f, timeout=f,
+                        unstable=f)
 
 
-class Env:
-    """Holds the stacked model and the static configuration; all methods are pure and jit-able."""
+class UnimalEnv:
+    """The task: the stacked model, its terrain and the static configuration; all methods are pure and jit-able.
+    `step` returns the transition without resetting (see `wrappers.AutoReset`)."""
 
     def __init__(self, robots: Sequence[Morphology], config: EnvConfig = EnvConfig()):
         self.config = config
         self.task: Task = get_task(config.task)
-        contact.install(config.c_contact_frames)
-        cpu_linalg.install()
         self.morphologies = tuple(robots)
+        self.terrain: terrain.Terrain = terrain.for_task(self.task, self.morphologies)
         opts = SolverOptions(iterations=config.iterations, ls_iterations=config.ls_iterations,
                              self_collision=config.self_collision)
-        self.patch = terrain.patch_size(self.morphologies) if self.task.uses_hfield else 0
-        self.sm: StackedModel = build_stacked_model(self.morphologies, self._world(), opts)
+        self.sm: StackedModel = build_stacked_model(self.morphologies, self.terrain.world(), opts)
         self.robots: Robots = self.sm.policy
         if config.context_features is not None:
             self.robots = self.robots._replace(context=self.robots.context * context_mask(config.context_features))
         self.tables: Tables = self.sm.tables
         self.num_robots = len(self.morphologies)
         mm = self.sm.mj_models[0]
-        self._hgeom = int(np.nonzero(mm.geom_type == 1)[0][0]) if self.task.uses_hfield else -1  # mjGEOM_HFIELD
+        self._hgeom = int(np.nonzero(mm.geom_type == 1)[0][0]) if self.terrain.uses_hfield else -1  # mjGEOM_HFIELD
         self._template = jax.device_put(mjx.make_data(self.sm.model_for(0), impl="jax"))
-        self.hfield_size = terrain.HFIELD_OBS_SIZE if self.task.hfield_obs else 0
-
-    def _world(self) -> WorldSpec:
-        t = self.task
-        if t.terrain == "plane":
-            return WorldSpec(geoms='    <geom name="floor" type="plane" size="0 0 1" pos="0 0 1" '
-                                   'contype="0" conaffinity="1"/>')
-        if t.terrain == "incline":
-            a = np.radians(t.incline_deg)
-            # the slab's top face: z = 1/cos(a) + tan(a) x
-            return WorldSpec(geoms=f'    <geom name="floor" type="plane" size="0 0 1" pos="0 0 {float(1 / np.cos(a))!r}" '
-                                   f'euler="0 {-float(t.incline_deg)!r} 0" contype="0" conaffinity="1"/>',
-                             incline_deg=t.incline_deg)
-        asset, geom = terrain.hfield_world_xml(self.patch)
-        return WorldSpec(assets=asset, geoms=geom)
+        self.hfield_size = terrain.grid.HFIELD_OBS_SIZE if self.task.hfield_obs else 0
 
     # ---- helpers ---------------------------------------------------------------------------------------------
     def _row(self, tree, robot):
@@ -144,8 +147,8 @@ class Env:
 
     def _model(self, robot, terrain_state, qpos):
         m = self.sm.model_for(robot)
-        if self.task.uses_hfield:
-            data, pos = terrain.patch(self.task.terrain, terrain_state, qpos[0], qpos[1], self.patch)
+        if self.terrain.uses_hfield:
+            data, pos = self.terrain.patch(terrain_state, qpos[0], qpos[1])
             m = m.replace(hfield_data=data, geom_pos=m.geom_pos.at[self._hgeom].set(pos))
         return m
 
@@ -158,27 +161,11 @@ class Env:
             else:
                 xdir = d.xmat[1, :2, 0]
                 yaw = jnp.arctan2(xdir[1], xdir[0])
-            hf = terrain.hfield_obs(self.task.terrain, terrain_state, d.xpos[1, 0], d.xpos[1, 1], yaw)
+            hf = self.terrain.hfield_obs(terrain_state, d.xpos[1, 0], d.xpos[1, 1], yaw)
         else:
             hf = jnp.zeros((0,), jnp.float32)
         return Obs(proprio=prop.astype(jnp.float32), prev_action=prev_action, hfield=hf,
                    robot=jnp.asarray(robot, jnp.int32))
-
-    # ---- API ---------------------------------------------------------------------------------------------------
-    def reset(self, key: jax.Array, robot: jax.Array) -> EnvState:
-        robot = jnp.asarray(robot, jnp.int32)
-        kq, kv, kt, knext = jax.random.split(key, 4)
-        tab, pol = self._row(self.tables, robot), self._row(self.robots, robot)
-        m = self.sm.model_for(robot)
-        s = self.config.reset_noise
-        qpos = m.qpos0 + jax.random.uniform(kq, m.qpos0.shape, minval=-s, maxval=s) * tab.real_qpos
-        qvel = jax.random.uniform(kv, (m.nv,), minval=-s, maxval=s) * tab.real_dof
-        ts = terrain.generate(self.task.terrain, kt)
-        obs, torso_x = self._observe(robot, qpos, qvel, ts, jnp.zeros((NUM_ACTIONS,), jnp.float32))
-        return EnvState(qpos=qpos, qvel=qvel, qacc_warmstart=jnp.zeros_like(qvel), robot=robot, t=jnp.int32(0),
-                        key=knext, torso_x=torso_x, terrain=ts, obs=obs, reward=jnp.float32(0.0),
-                        done=jnp.asarray(False), truncated=jnp.asarray(False), ep_return=jnp.float32(0.0),
-                        episode=_zeros_episode())
 
     def _observe(self, robot, qpos, qvel, ts, prev_action):
         tab, pol = self._row(self.tables, robot), self._row(self.robots, robot)
@@ -189,6 +176,23 @@ class Env:
         d = mjx.com_vel(m, d)
         return self._obs(d, qpos, qvel, tab, pol, robot, ts, prev_action, yaw_aligned=True), d.xpos[1, 0]
 
+    # ---- API ---------------------------------------------------------------------------------------------------
+    def reset(self, key: jax.Array, robot: jax.Array) -> EnvState:
+        robot = jnp.asarray(robot, jnp.int32)
+        kq, kv, kt, knext = jax.random.split(key, 4)
+        tab = self._row(self.tables, robot)
+        m = self.sm.model_for(robot)
+        s = self.config.reset_noise
+        qpos = m.qpos0 + jax.random.uniform(kq, m.qpos0.shape, minval=-s, maxval=s) * tab.real_qpos
+        qvel = jax.random.uniform(kv, (m.nv,), minval=-s, maxval=s) * tab.real_dof
+        ts = self.terrain.generate(kt)
+        obs, torso_x = self._observe(robot, qpos, qvel, ts, jnp.zeros((NUM_ACTIONS,), jnp.float32))
+        return EnvState(physics=Physics(qpos=qpos, qvel=qvel, qacc_warmstart=jnp.zeros_like(qvel)),
+                        episode=Episode(robot=robot, t=jnp.int32(0), ret=jnp.float32(0.0), torso_x=torso_x,
+                                        terrain=ts),
+                        obs=obs, reward=jnp.float32(0.0), done=jnp.asarray(False), truncated=jnp.asarray(False),
+                        ended=_no_stats(), key=knext)
+
     def observe(self, robot: jax.Array, qpos: jax.Array, qvel: jax.Array, terrain_state=None,
                 prev_action: jax.Array | None = None) -> Obs:
         """The observation of an arbitrary state of robot `robot` (padded qpos/qvel layout), with kinematics
@@ -198,28 +202,31 @@ class Env:
         pa = jnp.zeros((NUM_ACTIONS,), jnp.float32) if prev_action is None else prev_action
         return self._observe(robot, jnp.asarray(qpos, jnp.float32), jnp.asarray(qvel, jnp.float32), ts, pa)[0]
 
-    def step(self, state: EnvState, action: jax.Array, sampler: sampling.SamplerState | None = None) -> EnvState:
-        robot = state.robot
+    def step(self, state: EnvState, action: jax.Array) -> EnvState:
+        """One control step; where it ends the episode (`done`) the returned state is the terminal one (zeroed if
+        unstable) and `ended` holds the episode's statistics. The key is left as it is."""
+        phys, ep = state.physics, state.episode
+        robot = ep.robot
         tab, pol = self._row(self.tables, robot), self._row(self.robots, robot)
-        m = self._model(robot, state.terrain, state.qpos)
+        m = self._model(robot, ep.terrain, phys.qpos)
         raw = jnp.asarray(action, jnp.float32).reshape(NUM_ACTIONS)
         act = jnp.where(pol.act_mask, jnp.clip(raw, -1.0, 1.0), 0.0)
         ctrl = jnp.concatenate([act, jnp.zeros((1,), jnp.float32)])[tab.ctrl_src]
-        d = self._template.replace(qpos=state.qpos, qvel=state.qvel, qacc_warmstart=state.qacc_warmstart,
-                                   ctrl=ctrl)
-        if self.config.unroll_substeps:
-            for _ in range(self.config.substeps):
-                d = mjx.step(m, d)
-        else:
-            d = jax.lax.fori_loop(0, self.config.substeps, lambda i, dd: mjx.step(m, dd), d)
+        d = self._template.replace(qpos=phys.qpos, qvel=phys.qvel, qacc_warmstart=phys.qacc_warmstart, ctrl=ctrl)
+        with contact.frames(self.config.c_contact_frames):
+            if self.config.unroll_substeps:
+                for _ in range(self.config.substeps):
+                    d = mjx.step(m, d)
+            else:
+                d = jax.lax.fori_loop(0, self.config.substeps, lambda i, dd: mjx.step(m, dd), d)
 
         finite = lambda x: jnp.all(jnp.isfinite(x))
         ok = (finite(d.qpos) & finite(d.qvel) & finite(d.xpos) & finite(d.xquat) & finite(d.cvel)
               & finite(d.subtree_com) & (jnp.max(jnp.abs(d.qvel)) <= self.config.max_qvel)
               & (jnp.max(jnp.abs(d.qpos[:3])) <= 1.0e4))
-        out = reward.evaluate(self.task, state.terrain, state.torso_x, d.xpos[1], tab.orig_height, raw,
+        out = reward.evaluate(self.task, self.terrain, ep.terrain, ep.torso_x, d.xpos[1], tab.orig_height, raw,
                               pol.act_mask)
-        t = state.t + 1
+        t = ep.t + 1
         rew = jnp.where(ok, out.reward, 0.0)
         fell = out.fell & ok
         oob = out.out_of_bounds & ok
@@ -228,44 +235,27 @@ class Env:
         unstable = ~ok
         done = terminated | timeout | unstable
         truncated = timeout | unstable
-        ep_return = state.ep_return + rew
-        episode = Episode(ret=ep_return, length=t, robot=robot, fell=fell, out_of_bounds=oob, timeout=timeout,
-                          unstable=unstable)
-        # the continuing state (sanitised: an unstable state is replaced by the reset below anyway)
+        ret = ep.ret + rew
+        ended = EpisodeStats(ret=ret, length=t, robot=robot, fell=fell, out_of_bounds=oob, timeout=timeout,
+                             unstable=unstable)
+        # the state after the step, sanitised: nothing of an unstable state reaches the observation
         clean = lambda x: jnp.where(ok, x, 0.0)
         qpos, qvel = clean(d.qpos), clean(d.qvel)
         dd = d.replace(xpos=clean(d.xpos), xquat=clean(d.xquat), cvel=clean(d.cvel),
                        subtree_com=clean(d.subtree_com), xmat=clean(d.xmat))
-        obs = self._obs(dd, qpos, qvel, tab, pol, robot, state.terrain, act, yaw_aligned=False)
-        key, k_robot, k_reset = jax.random.split(state.key, 3)
-        cont = EnvState(qpos=qpos, qvel=qvel, qacc_warmstart=clean(d.qacc_warmstart), robot=robot, t=t, key=key,
-                        torso_x=dd.xpos[1, 0], terrain=state.terrain, obs=obs, reward=rew, done=done,
-                        truncated=truncated, ep_return=ep_return, episode=episode)
-        # automatic reset into a newly sampled robot
-        new_robot = sampling.sample(k_robot, sampler, self.num_robots)
-        fresh = self.reset(k_reset, new_robot)
-        fresh = fresh._replace(reward=rew, done=done, truncated=truncated, episode=episode)
-        return jax.tree_util.tree_map(lambda a, b: jnp.where(done, a, b), fresh, cont)
+        obs = self._obs(dd, qpos, qvel, tab, pol, robot, ep.terrain, act, yaw_aligned=False)
+        return EnvState(physics=Physics(qpos=qpos, qvel=qvel, qacc_warmstart=clean(d.qacc_warmstart)),
+                        episode=Episode(robot=robot, t=t, ret=ret, torso_x=dd.xpos[1, 0], terrain=ep.terrain),
+                        obs=obs, reward=rew, done=done, truncated=truncated, ended=ended, key=state.key)
 
-    def vreset(self, keys: jax.Array, robots: jax.Array) -> EnvState:
-        """Batched `reset` (keys (N, 2), robots (N,))."""
-        return jax.vmap(self.reset)(keys, robots)
 
-    def vstep(self, state: EnvState, action: jax.Array, sampler: sampling.SamplerState | None = None) -> EnvState:
-        """Batched `step` over the leading env axis of `state` and `action` (N, 24); one sampler for all."""
-        return jax.vmap(self.step, in_axes=(0, 0, None))(state, action, sampler)
-
-    def init(self, key: jax.Array, num_envs: int, sampler: sampling.SamplerState | None = None) -> EnvState:
-        """`num_envs` fresh envs, robots drawn from the sampler (uniform without one)."""
-        kr, ke = jax.random.split(key)
-        robots = jax.vmap(lambda k: sampling.sample(k, sampler, self.num_robots))(jax.random.split(kr, num_envs))
-        return self.vreset(jax.random.split(ke, num_envs), robots)
+Env = AutoReset     # what `make_env` returns: a UnimalEnv with auto-reset and robot sampling (wrappers.py)
 
 
 def make_env(robots: Any, task: str | Task | None = None, config: EnvConfig | None = None, **overrides) -> Env:
-    """An Env for a robot set name ("unimal100/train", "gen/train", a path), a RobotSet, or a list of robots.
-    `task` overrides `config.task` (default "ft"); other keyword arguments override EnvConfig fields."""
-    from ..unimal.sets import RobotSet, load_set
+    """The env for a robot set name ("unimal100/train", "gen/train", a path), a RobotSet, or a list of robots:
+    a `UnimalEnv` wrapped in `AutoReset`. `task` overrides `config.task` (default "ft"); other keyword arguments
+    override EnvConfig fields."""
     if isinstance(robots, str):
         robots = load_set(robots).robots
     elif isinstance(robots, RobotSet):
@@ -274,4 +264,4 @@ def make_env(robots: Any, task: str | Task | None = None, config: EnvConfig | No
     if task is not None:
         overrides["task"] = task.name if isinstance(task, Task) else task
     config = dataclasses.replace(config, **overrides)
-    return Env(tuple(robots), config)
+    return AutoReset(UnimalEnv(tuple(robots), config))

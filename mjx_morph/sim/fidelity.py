@@ -6,7 +6,9 @@ vmapped at once), with the same options (timestep, solver and line-search iterat
 same start state (standing pose + U(-0.005, 0.005) noise on every qpos/qvel entry) and the same actions
 (N(0, 0.9) per control step, applied through the env's action -> actuator table). Over `steps` control steps of
 4 substeps the largest world-position error of any body is reported. These robots are chaotic under tiny
-parameter changes (DESIGN.md), so the horizon is short (25 control steps = 0.5 s).
+parameter changes (a tiny difference at a contact onset grows into a different trajectory), so the horizon is
+short (25 control steps = 0.5 s). MJX uses MuJoCo C's plane-capsule contact frames (`contact.py`, installed when
+`mjx_morph.sim` is imported).
 """
 from __future__ import annotations
 
@@ -21,12 +23,12 @@ from mujoco import mjx
 
 from ..unimal.mjcf import to_mjcf
 from ..unimal.morphology import MAX_NODES, Morphology
-from . import contact, cpu_linalg
 from .model import build_stacked_model
 from .padding import SolverOptions, WorldSpec
 from .supertree import SharedTree
+from .terrain import Plane
 
-FLOOR = '    <geom name="floor" type="plane" size="0 0 1" pos="0 0 1" contype="0" conaffinity="1"/>'
+FLOOR = Plane().world().geoms          # ft's floor: a plane, top z = 1
 TOLERANCE = 1e-3
 
 
@@ -58,8 +60,6 @@ def compare(robots: Sequence[Morphology], options: SolverOptions = SolverOptions
             substeps: int = 4, seed: int = 0, tree: SharedTree | None = None,
             compiler_options: dict | None = None) -> list[Result]:
     robots = tuple(robots)
-    contact.install()
-    cpu_linalg.install()
     sm = build_stacked_model(robots, WorldSpec(geoms=FLOOR), options, tree=tree)
     R = len(robots)
     nq, nv = sm.mj_models[0].nq, sm.mj_models[0].nv

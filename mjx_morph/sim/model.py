@@ -3,11 +3,11 @@
 `build_stacked_model(robots, world, options)`:
 1. builds the shared tree of the set (`supertree.py`; a test set gets its own tree),
 2. writes each robot padded onto it inside the task's world (`padding.py`) and compiles it with MuJoCo,
-3. fixes up the compiled models so that they share one static MJX structure (DESIGN.md): `body_sameframe`,
-   `geom_sameframe`, `body_simple` and `dof_simplenum` are set to 0 (MJX's JAX path does not read them; the general
-   path is right for every robot), and every robot gets the element-wise max of `geom_rbound_hfield` (the height
-   field collision window, static in MJX); the solver tolerance is rescaled per robot so that the locked joints'
-   armature does not loosen it (`compile_padded`);
+3. fixes up the compiled models so that they share one static MJX structure (one compiled step serves all):
+   `body_sameframe`, `geom_sameframe`, `body_simple` and `dof_simplenum` are set to 0 (MJX's JAX path does not
+   read them; the general path is right for every robot), and every robot gets the element-wise max of
+   `geom_rbound_hfield` (the height field collision window, static in MJX); the solver tolerance is rescaled per
+   robot so that the locked joints' armature does not loosen it (`compile_padded`);
 4. stacks the MJX models along a leading robot axis. A leaf that is identical for all robots is kept once
    (`axes` leaf None), the others get the robot axis (`axes` leaf 0); `model_for(robot)` gathers one robot's model,
    and under `vmap` over envs that is one batched gather per control step (the cheapest of the variants measured,

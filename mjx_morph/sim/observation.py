@@ -1,4 +1,4 @@
-"""Per-token proprioceptive observation (12 x 52) from an MJX state, exactly as spec/environments.md §6.
+"""Per-token proprioceptive observation (12 x 52) from an MJX state, exactly as MetaMorph builds it.
 
 Token t = 0 is the torso, then the robot's limbs in the MuJoCo body order of its own file, zero rows for padding.
 Per token (indices into the 52):
@@ -9,9 +9,8 @@ Per token (indices into the 52):
 The 17 time-varying entries are 0-12, 30, 31, 41, 42; the other 35 are the raw static features, precomputed per
 robot (`model.Tables.static_feat`) and added here. body_xvelp/xvelr are mujoco-py's `body_xvelp/xvelr`, which
 MetaMorph reads: `mj_jacBody(body) @ qvel`, the world-frame velocity of the body *origin* (= MuJoCo's
-`mj_objectVelocity` of mjOBJ_XBODY; spec/environments.md's "mj_objectVelocity(body)" would be mjOBJ_BODY, the
-centre of mass, which mujoco-py does not use). Computed as the body's `cvel` moved from its root's subtree centre
-of mass to the body origin.
+`mj_objectVelocity` of mjOBJ_XBODY, not of mjOBJ_BODY, the centre of mass, which mujoco-py does not use).
+Computed as the body's `cvel` moved from its root's subtree centre of mass to the body origin.
 
 Which kinematics: like MetaMorph (mujoco-py reads `sim.data` after `mj_step`), positions, orientations and
 velocities of bodies are those MuJoCo computed at the start of the last physics substep, while qpos/qvel are the

@@ -1,7 +1,7 @@
 """Pad one robot onto a shared tree: the MJCF of the padded robot and its index tables.
 
 Every slot of the shared tree becomes one body with exactly two hinge joints (x then y), one capsule geom and two
-motors, so all padded robots of a set compile to models of one static structure (DESIGN.md):
+motors, so all padded robots of a set compile to models of one static structure (MJX keeps the tree static):
 - a slot the robot uses gets the robot's limb: its body position, capsule (`fromto`, radius, density) and joints,
   written with exactly the numbers of the robot's own file, so MuJoCo computes the same masses and inertias;
 - a limb with one joint gets a second, *locked* joint in the other slot: large armature, damping and stiffness,
@@ -13,7 +13,7 @@ Observation and action masks hide locked joints and inert slots (`model.py`).
 
 Masses: a real slot's capsule is written exactly as in the robot's file, so MuJoCo 4 computes its mass and
 inertia as for the robot alone; like every current MuJoCo (and MJX) that is 3-5% more than the MuJoCo 2.0 of the
-original runs gave (spec/unimal.md §9: MuJoCo >= 2.1 adds the hemispherical caps to a capsule's volume). A
+original runs gave (MuJoCo >= 2.1 adds the hemispherical caps to a capsule's volume). A
 documented deviation, not corrected.
 
 The world (floor, incline, height field) and the options (solver iterations, self-collision) come from the caller;
@@ -27,7 +27,7 @@ import math
 
 import numpy as np
 
-from ..unimal.mjcf import _num, _vec  # the writer's exact float formatting
+from ..unimal.mjcf import format_number as _num, format_vector as _vec  # the writer's exact formatting
 from ..unimal.morphology import Joint, Morphology
 from .supertree import SharedTree
 
@@ -50,7 +50,7 @@ class WorldSpec:
     """What the task puts around the robot: MJCF snippets and the torso's start pose."""
     assets: str = ""                      # inside <asset>
     geoms: str = ""                       # inside <worldbody>, before the robot
-    incline_deg: float = 0.0              # torso start pose of the incline task (spec/environments.md §3.2)
+    incline_deg: float = 0.0              # torso start pose of the incline task (`start_pose`)
 
     def start_pose(self, z0: float):
         """Torso start position and euler angles (degrees, or None) for a robot of standing height z0: on the

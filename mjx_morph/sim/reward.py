@@ -1,4 +1,4 @@
-"""Reward and termination of one control step (spec/environments.md §1-§2).
+"""Reward and termination of one control step, as MetaMorph computes them.
 
 reward = FORWARD_REWARD_WEIGHT * (x_torso(t+1) - x_torso(t)) / 0.02 [/ cos(10 deg) on the incline]
          - CTRL_COST_WEIGHT * sum(a^2)    (weight 0 in MetaMorph/ModuMorph; a = the raw policy action, real entries)
@@ -16,8 +16,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import terrain
 from .tasks import CONTROL_DT, Task
+from .terrain import Terrain
 
 
 class Outcome(NamedTuple):
@@ -27,7 +27,10 @@ class Outcome(NamedTuple):
     torso_height: jax.Array
 
 
-def evaluate(task: Task, terrain_state, x_before, torso_pos, orig_height, raw_action, act_mask) -> Outcome:
+def evaluate(task: Task, terrain: Terrain, terrain_state, x_before, torso_pos, orig_height, raw_action,
+             act_mask) -> Outcome:
+    """The outcome of a step that moved the torso from x = `x_before` to `torso_pos` (the env's terrain object and
+    the episode's terrain state give the ground under it)."""
     x, y, z = torso_pos[0], torso_pos[1], torso_pos[2]
     speed = (x - x_before) / CONTROL_DT
     if task.incline_deg:
@@ -35,7 +38,7 @@ def evaluate(task: Task, terrain_state, x_before, torso_pos, orig_height, raw_ac
     reward = task.forward_weight * speed
     if task.ctrl_cost_weight:
         reward = reward - task.ctrl_cost_weight * jnp.sum(jnp.where(act_mask, raw_action, 0.0) ** 2)
-    ground = terrain.ground_height(task, terrain_state, x, y)
+    ground = terrain.ground_height(terrain_state, x, y)
     height = jnp.round(z - ground, 3)
     fell = height <= orig_height * task.stand_ratio
     oob = jnp.abs(y) >= task.side_limit if task.side_limit is not None else jnp.asarray(False)

@@ -1,7 +1,7 @@
 """Which robot an env gets at its next reset: MetaMorph's balanced sampling, or uniform.
 
-Balanced ("balanced_replay_buffer", spec/environments.md §7): per robot i an episode-length estimate l_i: the mean
-of its first 10 episodes, then an EMA l_i <- 0.1 l + 0.9 l_i per finished episode (in time order). For the first
+Balanced (MetaMorph's "balanced_replay_buffer"): per robot i an episode-length estimate l_i: the mean of its
+first 10 episodes, then an EMA l_i <- 0.1 l + 0.9 l_i per finished episode (in time order). For the first
 30 PPO iterations every robot is equally likely; afterwards p_i ~ (1000 / l_i)^1, so robots whose episodes end
 early are sampled more and each robot contributes a similar number of transitions. MetaMorph writes a list of
 robot ids after every iteration that its envs read at reset; drawing each reset's robot i.i.d. from p, with p fixed

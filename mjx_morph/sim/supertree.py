@@ -4,12 +4,12 @@ MJX keeps the kinematic tree static, so robots of different topologies can only 
 share one tree. A robot embeds into the shared tree by an injective map limb -> slot that preserves parents (a limb
 on the torso goes to a child slot of the torso slot, a limb on limb j goes to a child slot of j's slot).
 
-Construction (DESIGN.md, "pad onto a shared tree"): start from one robot's tree and merge the robots in one at a
-time. Merging matches the children of two nodes by a maximum-weight bipartite matching whose weight is the size of
-the largest common subtree of the two children (computed recursively, so the match is optimal for that pair of
-trees); matched children are merged recursively and unmatched robot children become new slots. Greedy merging
-depends on the order, so a few orders (largest robots first, then seeded shuffles) are tried and the smallest tree
-kept. On the 100 original train robots this gives 28 bodies (torso + 27 limb slots); see `docs/benchmarks.md`.
+Construction: start from one robot's tree and merge the robots in one at a time. Merging matches the children of
+two nodes by a maximum-weight bipartite matching whose weight is the size of the largest common subtree of the two
+children (computed recursively, so the match is optimal for that pair of trees); matched children are merged
+recursively and unmatched robot children become new slots. Greedy merging depends on the order, so a few orders
+(largest robots first, then seeded shuffles) are tried and the smallest tree kept. The tree sizes of the robot sets
+are in `docs/benchmarks.md`.
 
 Slots are numbered in depth-first pre-order of the shared tree (slot 0 = torso), which is also the MuJoCo body
 order of every padded robot (body id = slot + 1; body 0 is the world). Children of a node are ordered by how many
@@ -177,7 +177,7 @@ def build_shared_tree(robots: Sequence[Morphology], tries: int = 16, seed: int =
 def group_robots(robots: Sequence[Morphology], num_groups: int) -> list[list[int]]:
     """Split a set into `num_groups` groups of (nearly) equal size whose shared trees are small: robots, largest
     first, go to the group whose tree grows least by them (|robot| - largest common subtree). One stacked model
-    per group is the lever "a few trees for groups of robots" of DESIGN.md."""
+    per group gives smaller trees, hence faster physics (docs/benchmarks.md)."""
     n = len(robots)
     cap = -(-n // num_groups)
     order = sorted(range(n), key=lambda i: (-robots[i].num_limbs, -robots[i].tree_depth, i))

@@ -12,11 +12,11 @@ The decoder column is the hidden layers of the policy's per-limb decoder for the
 configs); the return range is the paper's per-task range of returns over robots, used to normalise returns
 ((R - lo) / (hi - lo)) in evaluations and reports.
 
-Deviations from the original worlds (collected in the README):
+Deviations from the original worlds (listed in `mjx_morph/sim/__init__.py`):
 - ft: the 200 m x 200 m floor box is an infinite plane at z = 1 (the same surface wherever a robot can get in 20 s).
 - incline: the 150 m x 40 m tilted slab is an infinite tilted plane through the slab's top face; the slab's ends
   are out of reach in 20 s and its sides are beyond the side limit.
-- csr and obstacle: see `terrain.py` (one moving height-field patch instead of boxes and per-segment height
+- csr and obstacle: see `terrain/` (one moving height-field patch instead of boxes and per-segment height
   fields; obstacles are height-field columns standing on the floor instead of boxes floating 0.1 m above it).
 """
 from __future__ import annotations
@@ -24,6 +24,8 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
+
+from .terrain import KINDS as TERRAIN_KINDS
 
 CONTROL_DT = 0.02
 FRAME_SKIP = 4
@@ -36,7 +38,7 @@ RESET_NOISE = 0.005      # ENV.RESET_NOISE_SCALE
 @dataclasses.dataclass(frozen=True)
 class Task:
     name: str
-    terrain: str                   # "plane", "incline", "corridor", "obstacles"
+    terrain: str                   # "plane", "incline", "corridor", "obstacles" (a kind of `terrain.KINDS`)
     stand_ratio: float             # ENV.STAND_HEIGHT_RATIO
     side_limit: float | None       # terminate when |y_torso| >= side_limit
     hfield_obs: bool               # the 1410-value height map is part of the observation
@@ -53,7 +55,8 @@ class Task:
 
     @property
     def uses_hfield(self) -> bool:
-        return self.terrain in ("corridor", "obstacles")
+        """The physics of the task's terrain is the moving height-field patch (`terrain.HeightField`)."""
+        return TERRAIN_KINDS[self.terrain].uses_hfield
 
 
 TASKS = {

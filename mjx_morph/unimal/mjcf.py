@@ -19,7 +19,7 @@ import numpy as np
 from .morphology import TORSO, Morphology
 
 
-def _num(x: float) -> str:
+def format_number(x: float) -> str:
     """Shortest text that reads back as the same float64 (no precision is lost in a round trip)."""
     x = float(x)
     if x == 0.0:
@@ -28,8 +28,12 @@ def _num(x: float) -> str:
     return r[:-2] if r.endswith(".0") else r
 
 
-def _vec(v) -> str:
-    return " ".join(_num(x) for x in v)
+def format_vector(v) -> str:
+    """The numbers of `v`, each as `format_number` writes it, separated by spaces."""
+    return " ".join(format_number(x) for x in v)
+
+
+_num, _vec = format_number, format_vector     # short names for this module's f-strings
 
 
 def to_mjcf(m: Morphology, *, sites: bool = False, floor: bool = False, z_offset: float = 0.0) -> str:
