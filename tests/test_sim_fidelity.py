@@ -34,28 +34,81 @@ def test_padded_mjx_matches_mujoco_c_at_default_settings():
         assert r.error < fidelity.TOLERANCE, (r.name, r.error)
 
 
-def test_plane_capsule_frames_installed_once_and_chosen_per_trace():
-    """Importing mjx_morph.sim put our (plane, capsule) collider into MJX's table: MuJoCo C's first tangent (the
-    capsule axis projected onto the plane) by default, MJX's own frame inside `contact.frames(False)` (what an env
-    with c_contact_frames=False traces its step in); contact distances and points are the same."""
+def _order(c):
+    """Contacts ordered by distance, then position (two ends lying on the floor have equal distances)."""
+    return round(float(c[0]), 5), tuple(np.round(np.asarray(c[1], np.float64), 4))
+
+
+def _c_contacts(floor_xml: str, pos, quat, length: float, radius: float):
+    """MuJoCo C's contacts of one free capsule with the floor: (dist, pos, normal up, first tangent) sorted by dist."""
+    xml = (f'<mujoco><worldbody>{floor_xml}<body pos="{float(pos[0])!r} {float(pos[1])!r} {float(pos[2])!r}" '
+           f'quat="{" ".join(repr(float(x)) for x in quat)}"><freejoint/>'
+           f'<geom type="capsule" fromto="0 0 0 {float(length)!r} 0 0" size="{float(radius)!r}"/></body></worldbody></mujoco>')
+    mm = mujoco.MjModel.from_xml_string(xml)
+    d = mujoco.MjData(mm)
+    mujoco.mj_forward(mm, d)
+    out = []
+    for c in d.contact[:d.ncon]:
+        f = np.array(c.frame).reshape(3, 3)
+        sign = 1.0 if c.geom[0] == 0 else -1.0              # the normal points from geom1 to geom2
+        out.append((c.dist, np.array(c.pos), sign * f[0], f[1]))
+    return mm, d, sorted(out, key=_order)
+
+
+@pytest.mark.parametrize("incline", [0.0, 10.0])
+def test_floor_contacts_equal_mujoco_c(incline):
+    """The installed (plane, capsule) collider: rule "box" gives MuJoCo C's contacts against MetaMorph's box floor
+    (distances, points, and the frame up to the signs of its axes), rule "plane" MuJoCo C's against a plane (first
+    tangent = the capsule axis projected), "mjx" MJX's own; random capsule poses on ft's and incline's floors."""
     collide = collision_driver._COLLISION_FUNC[(GeomType.PLANE, GeomType.CAPSULE)]
-    assert collide is contact._plane_capsule
-    xml = ('<mujoco><worldbody><geom type="plane" size="0 0 1"/><body pos="0 0 0.2" axisangle="1 1 0 20">'
-           '<freejoint/><geom type="capsule" size="0.05 0.2"/></body></worldbody></mujoco>')
-    m = mjx.put_model(mujoco.MjModel.from_xml_string(xml), impl="jax")
-    d = mjx.kinematics(m, mjx.make_data(m, impl="jax"))
-    pair = jnp.asarray([[0, 1]])
-    c_dist, c_pos, c_frame = (np.asarray(x) for x in collide(m, d, None, pair))
-    with contact.frames(False):
-        j_dist, j_pos, j_frame = (np.asarray(x) for x in collide(m, d, None, pair))
-    axis = np.asarray(d.geom_xmat[1])[:, 2]
-    tangent = np.array([axis[0], axis[1], 0.0]) / np.linalg.norm(axis[:2])     # steeper than 60 degrees
-    np.testing.assert_allclose(c_frame[:, 1], [tangent, tangent], atol=1e-6)
-    assert np.abs(j_frame[:, 1] - tangent).max() > 0.1                          # MJX: a fixed world axis
-    np.testing.assert_allclose(c_frame[:, 0], j_frame[:, 0], atol=1e-6)         # same normal, points, distances
-    np.testing.assert_allclose(c_pos, j_pos, atol=1e-6)
-    np.testing.assert_allclose(c_dist, j_dist, atol=1e-6)
-    assert collision_driver._COLLISION_FUNC[(GeomType.PLANE, GeomType.CAPSULE)] is collide
+    assert collide is contact._floor_capsule
+    a = np.radians(incline)
+    plane = terrain.Plane() if not incline else terrain.InclinedPlane(incline_deg=incline)
+    plane_xml = plane.world().geoms.replace(' contype="0" conaffinity="1"', "")
+    box_xml = (f'<geom type="box" size="{75 if incline else 100} {20 if incline else 100} 1" '
+               f'euler="0 {-incline!r} 0"/>')
+    rng = np.random.default_rng(0)
+    seen = {1: 0, 2: 0}
+    for i in range(40):
+        q = rng.normal(size=4)
+        q /= np.linalg.norm(q)
+        length, radius = rng.uniform(0.05, 0.4), rng.uniform(0.03, 0.07)
+        x = rng.uniform(-3, 3)
+        pos = (x, rng.uniform(-3, 3), 1 / np.cos(a) + np.tan(a) * x + rng.uniform(-0.05, 0.2))
+        if i % 4 == 0:          # lying on the floor, both ends' centres above it: MuJoCo C gives two contacts
+            t = rng.uniform(0, 2 * np.pi)
+            q = np.array([np.cos(t / 2), 0.0, 0.0, np.sin(t / 2)])
+            tilt = np.array([np.cos(-a / 2), 0.0, np.sin(-a / 2), 0.0])     # lie along the incline's face
+            lying = np.zeros(4)
+            mujoco.mju_mulQuat(lying, tilt, q)
+            q = lying
+            top = 1 / np.cos(a) + np.tan(a) * x
+            pos = (x, pos[1], top + (radius - 0.01) / np.cos(a))
+        mm, d, want = _c_contacts(box_xml, pos, q, length, radius)
+        pm, pd, want_plane = _c_contacts(plane_xml, pos, q, length, radius)
+        m = mjx.put_model(pm, impl="jax")
+        dx = mjx.kinematics(m, mjx.put_data(pm, pd, impl="jax"))
+        pair = jnp.asarray([[0, 1]])
+        for rule, ref in [("box", want), ("plane", want_plane)]:
+            with contact.floor(rule):
+                dist, cpos, frame = (np.asarray(v) for v in collide(m, dx, None, pair))
+            got = sorted([(dist[k], cpos[k], frame[k]) for k in range(2) if dist[k] < 0], key=_order)
+            assert len(got) == len(ref), (rule, i, [g[0] for g in got], [w[0] for w in ref])
+            for g, w in zip(got, ref):
+                assert abs(g[0] - w[0]) < 1e-5 and np.abs(g[1] - w[1]).max() < 1e-5, (rule, i)
+                np.testing.assert_allclose(g[2][0], w[2], atol=1e-5)                 # normal, pointing up
+                np.testing.assert_allclose(np.abs(g[2][1] @ w[3]), 1.0, atol=1e-5)   # first tangent, up to sign
+            if rule == "box" and ref:
+                seen[len(ref)] += 1
+        with contact.floor("plane"):
+            plane_dist = np.asarray(collide(m, dx, None, pair)[0])
+        with contact.floor("mjx"):
+            mjx_dist = np.asarray(collide(m, dx, None, pair)[0])
+        np.testing.assert_allclose(np.sort(mjx_dist), np.sort(plane_dist), atol=1e-6)    # same points, own frames
+    assert seen[1] and seen[2], seen          # both a one-contact and a two-contact case were checked
+    with pytest.raises(ValueError, match="floor_contacts='boxes'"):
+        with contact.floor("boxes"):
+            pass
 
 
 def test_cpu_cholesky_matches_lapack():

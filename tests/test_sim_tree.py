@@ -85,7 +85,7 @@ def test_padded_robot_matches_robot_alone_in_mujoco_c():
     opts = SolverOptions(iterations=100, ls_iterations=50)
     tree = supertree.build_shared_tree(rs)
     for r, m in enumerate(rs):
-        mp = mujoco.MjModel.from_xml_string(padding.padded_mjcf(m, tree, r, WorldSpec(geoms=fidelity.FLOOR), opts))
+        mp = mujoco.MjModel.from_xml_string(padding.padded_mjcf(m, tree, r, WorldSpec(geoms=fidelity.METAMORPH_FLOOR), opts))
         ma = fidelity.alone_model(m, opts)
         bodies = [1] + [s + 1 for s in tree.slot_of[r]]
         np.testing.assert_allclose(mp.body_mass[bodies], ma.body_mass[1:], rtol=1e-12)

@@ -1,22 +1,34 @@
-"""Plane-capsule contact frames as MuJoCo C computes them, installed into MJX's collision table.
+"""Floor-capsule contacts as MuJoCo C makes them against MetaMorph's box floor, installed into MJX's collision table.
 
-With pyramidal friction cones the orientation of a contact's tangent frame matters: the 4 pyramid edges lie along
-its first tangent and the one after. MuJoCo C (`mjc_PlaneCapsule` + `mju_makeFrame`) takes the capsule axis
-projected onto the plane as the first tangent whenever the projection is non-zero. MJX 3.17's JAX collider falls
-back to a fixed world axis as soon as the projection is shorter than 0.5, i.e. for every capsule steeper than 60
-degrees, which is most of a standing UNIMAL's legs; the two then apply different friction pyramids and
-trajectories part by centimetres within 0.5 s (measured: 2e-3 m after 9 control steps for a train robot at
-MuJoCo's default solver settings, 1e-5 m with this fix).
+MetaMorph's ft and incline floors are boxes (ft: half-size 100 x 100 x 1 at the origin; incline: 75 x 20 x 1 tilted
+-10 degrees about y); ours is the plane through the box's top face. Far from the box's edges (the robots stay there)
+MuJoCo C's capsule-box collider, measured on MuJoCo 4.0 over 8000 random capsule poses on both floors (exact to
+1e-9 m, `tests/test_sim_fidelity.py` keeps a smaller version of that check), gives:
+- candidate points: the two ends of the capsule's segment, end A = centre - half-length * axis tested first, then B;
+- if A's end point is inside the box (at or below the face), only A's contact, even when B is deeper; otherwise, if
+  B's is inside, only B's; otherwise both ends (each one active when within the margin, as for a plane);
+- each contact as a sphere at that end: distance = height of the end above the face - radius, position halfway
+  between the sphere's lowest point and the face;
+- the frame of `mju_makeFrame(normal)`: normal, then (0, 1, 0) made orthogonal to it, i.e. world-aligned on ft
+  and aligned with the slope on incline (the first tangent is the world y axis in both).
+With condim 3 the friction pyramid's edges lie along the two tangents, so the frame decides how much traction a
+limb gets in each direction: a world-aligned pyramid gives a limb at 45 degrees (UNIMAL limbs grow on a 45 degree
+grid) a different forward traction than a pyramid aligned with the limb.
+
+Three rules can be chosen (`EnvConfig.floor_contacts`):
+    "box"    the above (MetaMorph's floor, the default);
+    "plane"  MuJoCo C's plane-capsule collider: both ends always, first tangent = the capsule axis projected onto
+             the plane (`mjc_PlaneCapsule` + `mju_makeFrame`);
+    "mjx"    MJX 3.17's own plane-capsule collider: both ends, the projected axis as first tangent unless the
+             projection is shorter than 0.5 (capsules steeper than 60 degrees), then a fixed world axis.
+Sphere-plane contacts (the torso) already agree with MuJoCo C's sphere-box face contacts (MJX's `make_frame` and
+`mju_makeFrame` pick the same tangent). Height-field contacts (csr, obstacle) are MJX's own and are not changed.
 
 How it is installed: MJX looks its colliders up in a private, process-wide table (`collision_driver._COLLISION_FUNC`
 of the pinned mujoco-mjx) while a step is traced. `install()`, called once when `mjx_morph.sim` is imported, puts
-one (plane, capsule) collider there that uses MuJoCo C's frame rule, or MJX's own collider while a step is traced
-inside `frames(False)`. So every MJX step traced in this process gets MuJoCo C's frames (the env, the fidelity
-check, benchmarks), and an env built with `EnvConfig.c_contact_frames=False` traces its own physics inside
-`frames(False)` and gets MJX's frames, whatever other envs exist in the process. Only the tangent frame of
-plane-capsule contacts changes. Sphere-plane contacts already agree (MJX's `make_frame` picks (0, 1, 0) like
-`mju_makeFrame`). Height-field and box contacts have no MuJoCo C counterpart of the same algorithm in MJX and are
-left alone.
+one (plane, capsule) collider there that applies the rule of the innermost `floor(rule)` block being traced ("box"
+outside any block). An env traces its physics inside `floor(config.floor_contacts)`, so envs with different rules
+can live in one process.
 """
 from __future__ import annotations
 
@@ -25,52 +37,80 @@ import contextvars
 from typing import Iterator
 
 import jax.numpy as jnp
-from mujoco.mjx._src import collision_driver, collision_primitive
+from mujoco.mjx._src import collision_driver, collision_primitive, math as mjx_math
 from mujoco.mjx._src.types import GeomType
 
 _KEY = (GeomType.PLANE, GeomType.CAPSULE)
 _MJX = collision_primitive.plane_capsule                 # MJX's own collider (the table's entry before `install`)
-_C_FRAMES = contextvars.ContextVar("mjx_morph_c_contact_frames", default=True)
+INACTIVE = 1.0e4            # distance given to a candidate contact the rule drops (MJX: active iff dist < margin)
+
+
+def _end_contacts(plane, cap):
+    """Sphere-plane contacts at the capsule's segment ends A = centre - h axis and B = centre + h axis:
+    (heights of the end points above the plane (2,), distances (2,), positions (2, 3))."""
+    n = plane.mat[:, 2]
+    axis = cap.mat[:, 2]
+    radius, half = cap.size[0], cap.size[1]
+    ends = jnp.stack([cap.pos - half * axis, cap.pos + half * axis])
+    height = (ends - plane.pos) @ n
+    dist = height - radius
+    pos = ends - n[None, :] * (radius + 0.5 * dist)[:, None]
+    return height, dist, pos
+
+
+@collision_primitive.collider(ncon=2)
+def box_face_capsule(plane, cap):
+    """MuJoCo C's capsule contacts with the top face of a large box (see the module docstring)."""
+    height, dist, pos = _end_contacts(plane, cap)
+    a_inside = height[0] <= 0.0
+    b_inside = (height[1] <= 0.0) & ~a_inside
+    keep = jnp.stack([~b_inside, ~a_inside])
+    frame = mjx_math.make_frame(plane.mat[:, 2])
+    return jnp.where(keep, dist, INACTIVE), pos, jnp.stack([frame, frame])
 
 
 @collision_primitive.collider(ncon=2)
 def plane_capsule(plane, cap):
-    """Two sphere-plane contacts at the capsule's segment ends, tangent = projected capsule axis."""
+    """MuJoCo C's plane-capsule contacts: both segment ends, tangent = the capsule axis projected on the plane."""
     n = plane.mat[:, 2]
     axis = cap.mat[:, 2]
     t = axis - n * jnp.dot(n, axis)
     norm = jnp.linalg.norm(t)
     t = jnp.where(norm > 1e-10, t / jnp.where(norm > 1e-10, norm, 1.0), jnp.array([1.0, 0.0, 0.0]))
     frame = jnp.stack([n, t, jnp.cross(n, t)])
-    radius, half = cap.size[0], cap.size[1]
-    dists, poss = [], []
-    for sign in (1.0, -1.0):
-        centre = cap.pos + sign * half * axis
-        dist = jnp.dot(centre - plane.pos, n) - radius
-        dists.append(dist)
-        poss.append(centre - n * (radius + 0.5 * dist))
-    return jnp.stack(dists), jnp.stack(poss), jnp.stack([frame, frame])
+    _, dist, pos = _end_contacts(plane, cap)
+    return dist, pos, jnp.stack([frame, frame])
 
 
-def _plane_capsule(m, d, key, geom):
-    """The installed collider: MuJoCo C's frames, or MJX's inside `frames(False)` (decided while tracing)."""
-    return (plane_capsule if _C_FRAMES.get() else _MJX)(m, d, key, geom)
+RULES = {"box": box_face_capsule, "plane": plane_capsule, "mjx": _MJX}
+_RULE = contextvars.ContextVar("mjx_morph_floor_contacts", default="box")
 
 
-_plane_capsule.ncon = 2
-assert _MJX.ncon == plane_capsule.ncon == 2
+def _floor_capsule(m, d, key, geom):
+    """The installed collider: the rule of the `floor` block being traced (decided while tracing)."""
+    return RULES[_RULE.get()](m, d, key, geom)
+
+
+_floor_capsule.ncon = 2
+assert all(f.ncon == 2 for f in RULES.values())
 
 
 def install() -> None:
-    """Put the plane-capsule collider into MJX's collision table (idempotent; done at import of mjx_morph.sim)."""
-    collision_driver._COLLISION_FUNC[_KEY] = _plane_capsule
+    """Put the floor-capsule collider into MJX's collision table (idempotent; done at import of mjx_morph.sim)."""
+    collision_driver._COLLISION_FUNC[_KEY] = _floor_capsule
+
+
+def check_rule(rule: str) -> str:
+    if rule not in RULES:
+        raise ValueError(f"floor_contacts={rule!r}: expected one of {', '.join(RULES)}")
+    return rule
 
 
 @contextlib.contextmanager
-def frames(c_frames: bool) -> Iterator[None]:
-    """Trace the MJX steps inside this block with MuJoCo C's (True) or MJX's own (False) plane-capsule frames."""
-    token = _C_FRAMES.set(bool(c_frames))
+def floor(rule: str) -> Iterator[None]:
+    """Trace the MJX steps inside this block with floor-capsule contacts of `rule` ("box", "plane" or "mjx")."""
+    token = _RULE.set(check_rule(rule))
     try:
         yield
     finally:
-        _C_FRAMES.reset(token)
+        _RULE.reset(token)

@@ -32,8 +32,8 @@ Options (EnvConfig), each a documented deviation where it differs from MetaMorph
 default 100) and line-search iterations (8, default 50) -- 5 is the fewest with which every original train and test
 robot stays within 1e-3 m of MuJoCo C over 0.5 s (`experiments.check_sim`; at 4, 3 of the 100 train robots drift
 1.5-2.1e-3 m after a contact event, docs/benchmarks.md); self-collision (off; MetaMorph has it on); physics in
-float32 (JAX's default; MetaMorph float64); plane-capsule contact frames as MuJoCo C (`c_contact_frames`, on;
-`contact.py`). Contacts otherwise as MetaMorph: condim 3, friction 0.7, pyramidal cone, Newton solver, Euler
+float32 (JAX's default; MetaMorph float64); the ft / incline floor is a plane whose capsule contacts are those
+MuJoCo C makes against MetaMorph's box floor (`floor_contacts="box"`, `contact.py`). Contacts otherwise as MetaMorph: condim 3, friction 0.7, pyramidal cone, Newton solver, Euler
 integrator, parent-child filtering, no exclude pairs.
 """
 from __future__ import annotations
@@ -69,7 +69,8 @@ class EnvConfig:
     reset_noise: float = RESET_NOISE
     max_qvel: float = 1.0e3         # instability threshold on any |qvel| entry
     unroll_substeps: bool = False   # Python-unroll the substeps instead of a fori_loop
-    c_contact_frames: bool = True   # plane-capsule contact frames as MuJoCo C (contact.py)
+    floor_contacts: str = "box"     # ft / incline floor-capsule contacts: "box" (MuJoCo C against MetaMorph's box
+                                    # floor), "plane" (MuJoCo C's plane) or "mjx" (MJX's own); contact.py
     context_features: Optional[List[str]] = None   # None: all context features; else only these groups of
                                                    # mjx_morph.layout.CONTEXT_GROUPS, the others zeroed
 
@@ -126,6 +127,7 @@ class UnimalEnv:
     def __init__(self, robots: Sequence[Morphology], config: EnvConfig = EnvConfig()):
         self.config = config
         self.task: Task = get_task(config.task)
+        contact.check_rule(config.floor_contacts)
         self.morphologies = tuple(robots)
         self.terrain: terrain.Terrain = terrain.for_task(self.task, self.morphologies)
         opts = SolverOptions(iterations=config.iterations, ls_iterations=config.ls_iterations,
@@ -138,6 +140,7 @@ class UnimalEnv:
         self.num_robots = len(self.morphologies)
         mm = self.sm.mj_models[0]
         self._hgeom = int(np.nonzero(mm.geom_type == 1)[0][0]) if self.terrain.uses_hfield else -1  # mjGEOM_HFIELD
+        self._ancestors = jnp.asarray(observation.ancestor_dofs(mm))
         self._template = jax.device_put(mjx.make_data(self.sm.model_for(0), impl="jax"))
         self.hfield_size = terrain.grid.HFIELD_OBS_SIZE if self.task.hfield_obs else 0
 
@@ -153,7 +156,8 @@ class UnimalEnv:
         return m
 
     def _obs(self, d, qpos, qvel, tab, pol, robot, terrain_state, prev_action, yaw_aligned: bool) -> Obs:
-        prop = observation.proprio(d.xpos, d.xquat, d.cvel, d.subtree_com, qpos, qvel, tab, pol.node_mask,
+        cvel = observation.body_velocity(self._ancestors, d.cdof, qvel)     # mujoco-py's, after the step
+        prop = observation.proprio(d.xpos, d.xquat, cvel, d.subtree_com, qpos, qvel, tab, pol.node_mask,
                                    pol.act_mask)
         if self.task.hfield_obs:
             if yaw_aligned:
@@ -173,7 +177,6 @@ class UnimalEnv:
         d = self._template.replace(qpos=qpos, qvel=qvel)
         d = mjx.kinematics(m, d)
         d = mjx.com_pos(m, d)
-        d = mjx.com_vel(m, d)
         return self._obs(d, qpos, qvel, tab, pol, robot, ts, prev_action, yaw_aligned=True), d.xpos[1, 0]
 
     # ---- API ---------------------------------------------------------------------------------------------------
@@ -213,7 +216,7 @@ class UnimalEnv:
         act = jnp.where(pol.act_mask, jnp.clip(raw, -1.0, 1.0), 0.0)
         ctrl = jnp.concatenate([act, jnp.zeros((1,), jnp.float32)])[tab.ctrl_src]
         d = self._template.replace(qpos=phys.qpos, qvel=phys.qvel, qacc_warmstart=phys.qacc_warmstart, ctrl=ctrl)
-        with contact.frames(self.config.c_contact_frames):
+        with contact.floor(self.config.floor_contacts):
             if self.config.unroll_substeps:
                 for _ in range(self.config.substeps):
                     d = mjx.step(m, d)
@@ -222,7 +225,7 @@ class UnimalEnv:
 
         finite = lambda x: jnp.all(jnp.isfinite(x))
         ok = (finite(d.qpos) & finite(d.qvel) & finite(d.xpos) & finite(d.xquat) & finite(d.cvel)
-              & finite(d.subtree_com) & (jnp.max(jnp.abs(d.qvel)) <= self.config.max_qvel)
+              & finite(d.cdof) & finite(d.subtree_com) & (jnp.max(jnp.abs(d.qvel)) <= self.config.max_qvel)
               & (jnp.max(jnp.abs(d.qpos[:3])) <= 1.0e4))
         out = reward.evaluate(self.task, self.terrain, ep.terrain, ep.torso_x, d.xpos[1], tab.orig_height, raw,
                               pol.act_mask)
@@ -241,7 +244,7 @@ class UnimalEnv:
         # the state after the step, sanitised: nothing of an unstable state reaches the observation
         clean = lambda x: jnp.where(ok, x, 0.0)
         qpos, qvel = clean(d.qpos), clean(d.qvel)
-        dd = d.replace(xpos=clean(d.xpos), xquat=clean(d.xquat), cvel=clean(d.cvel),
+        dd = d.replace(xpos=clean(d.xpos), xquat=clean(d.xquat), cdof=clean(d.cdof),
                        subtree_com=clean(d.subtree_com), xmat=clean(d.xmat))
         obs = self._obs(dd, qpos, qvel, tab, pol, robot, ep.terrain, act, yaw_aligned=False)
         return EnvState(physics=Physics(qpos=qpos, qvel=qvel, qacc_warmstart=clean(d.qacc_warmstart)),

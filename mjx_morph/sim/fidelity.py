@@ -1,14 +1,20 @@
-"""Fidelity of the padded, stacked MJX simulation against each robot alone in MuJoCo C.
+"""Fidelity of the padded, stacked MJX simulation against each robot alone in MuJoCo C, on MetaMorph's floor.
 
-For every robot: the robot alone (its own MJCF, `unimal.mjcf.to_mjcf`) on a plane at z = 1 in MuJoCo C (float64),
-and the same robot padded onto the set's shared tree inside the stacked MJX model (float32, all robots of the set
-vmapped at once), with the same options (timestep, solver and line-search iterations, self-collision on/off), the
-same start state (standing pose + U(-0.005, 0.005) noise on every qpos/qvel entry) and the same actions
-(N(0, 0.9) per control step, applied through the env's action -> actuator table). Over `steps` control steps of
-4 substeps the largest world-position error of any body is reported. These robots are chaotic under tiny
-parameter changes (a tiny difference at a contact onset grows into a different trajectory), so the horizon is
-short (25 control steps = 0.5 s). MJX uses MuJoCo C's plane-capsule contact frames (`contact.py`, installed when
-`mjx_morph.sim` is imported).
+Three simulations of every robot from the same start state (standing pose + U(-0.005, 0.005) noise on every
+qpos/qvel entry) under the same actions (N(0, 0.9) per control step, through the env's action -> actuator table),
+`steps` control steps of 4 substeps, with the same options (timestep, solver and line-search iterations,
+self-collision on/off, parent-child filtering):
+- `alone`:  the robot's own MJCF (`unimal.mjcf.to_mjcf`) in MuJoCo C (float64), on MetaMorph's ft floor (a box of
+            half-size 100 x 100 x 1 at the origin, top z = 1) and, with self-collision on, every non-parent pair;
+- `padded C`: the robot padded onto the set's shared tree (locked joints, inert slots, the set's self-collision
+            pair cut) in MuJoCo C (float64), on the same box;
+- `padded MJX`: the same padded robot in the stacked MJX model (float32, all robots vmapped at once) on the env's
+            ft floor, a plane with MuJoCo C's box-face contacts (`contact.py`).
+For each robot the largest world-position error of any body over the steps is reported three ways: `error` =
+padded MJX against alone (everything we change), `padding` = padded C against alone (the padding and the pair cut
+alone, same float64 engine), `mjx` = padded MJX against padded C (MJX and float32 alone, same model). These robots
+are chaotic under tiny changes (a tiny difference at a contact onset grows into a different trajectory), so the
+horizon is short (25 control steps = 0.5 s).
 """
 from __future__ import annotations
 
@@ -23,23 +29,26 @@ from mujoco import mjx
 
 from ..unimal.mjcf import to_mjcf
 from ..unimal.morphology import MAX_NODES, Morphology
-from .model import build_stacked_model
+from .model import INERT_MARGIN, build_stacked_model, compile_padded
 from .padding import SolverOptions, WorldSpec
 from .supertree import SharedTree
 from .terrain import Plane
 
-FLOOR = Plane().world().geoms          # ft's floor: a plane, top z = 1
+FLOOR = Plane().world().geoms          # ft's floor in MJX: a plane, top z = 1
+METAMORPH_FLOOR = '    <geom name="floor" type="box" size="100 100 1" pos="0 0 0" contype="0" conaffinity="1"/>'
 TOLERANCE = 1e-3
 
 
-def alone_model(m: Morphology, options: SolverOptions) -> mujoco.MjModel:
-    """The robot alone in MuJoCo C, on a plane at z = 1, with the padded model's options and contact filter."""
+def alone_model(m: Morphology, options: SolverOptions, floor: str = METAMORPH_FLOOR) -> mujoco.MjModel:
+    """The robot alone in MuJoCo C, on MetaMorph's ft floor (or `floor`, top z = 1), with the padded model's
+    options and contact filter."""
     xml = to_mjcf(m, floor=True, z_offset=1.0)
-    xml = xml.replace('<geom name="floor" type="plane" size="50 50 0.1" pos="0 0 0"/>', FLOOR.strip())
+    xml = xml.replace('<geom name="floor" type="plane" size="50 50 0.1" pos="0 0 0"/>', floor.strip())
     mm = mujoco.MjModel.from_xml_string(xml)
     floor = mujoco.mj_name2id(mm, mujoco.mjtObj.mjOBJ_GEOM, "floor")
-    if floor < 0 or mm.geom_pos[floor][2] != 1.0:
-        raise RuntimeError("alone_model: could not place the floor at z = 1 (to_mjcf's floor line changed?)")
+    top = mm.geom_pos[floor][2] + (mm.geom_size[floor][2] if mm.geom_type[floor] == mujoco.mjtGeom.mjGEOM_BOX else 0)
+    if floor < 0 or top != 1.0:
+        raise RuntimeError("alone_model: could not place the floor top at z = 1 (to_mjcf's floor line changed?)")
     robot = np.arange(mm.ngeom) != floor
     mm.geom_contype[robot] = 1
     mm.geom_conaffinity[robot] = 1 if options.self_collision else 0
@@ -52,8 +61,42 @@ def alone_model(m: Morphology, options: SolverOptions) -> mujoco.MjModel:
 @dataclasses.dataclass(frozen=True)
 class Result:
     name: str
-    error: float           # max |body position error| over bodies and control steps (m)
+    error: float           # padded MJX vs alone in MuJoCo C: max |body position error| over bodies and steps (m)
+    padding: float         # padded vs alone, both in MuJoCo C
+    mjx: float             # padded MJX vs padded MuJoCo C
     error_by_step: np.ndarray
+
+
+def padded_c_models(sm, floor: str = METAMORPH_FLOOR) -> list[mujoco.MjModel]:
+    """The stacked model's padded robots compiled for MuJoCo C on `floor` (MetaMorph's box by default), with the
+    stacked model's options (self-collision pair cut included) and its inert geoms never in contact."""
+    out = compile_padded(sm.robots, sm.tree, WorldSpec(geoms=floor), sm.options)
+    for r, mm in enumerate(out):
+        used = {0} | set(sm.tree.slot_of[r])
+        for s in range(sm.tree.num_slots):
+            if s not in used:
+                mm.geom_margin[mm.body_geomadr[s + 1]] = INERT_MARGIN
+    return out
+
+
+def _run_c(mm: mujoco.MjModel, qpos, qvel, ctrls, substeps: int, bodies) -> np.ndarray:
+    """Body positions (steps, len(bodies), 3) of MuJoCo C after each control step (at the start of the last
+    substep, where MJX leaves xpos too)."""
+    d = mujoco.MjData(mm)
+    d.qpos[:], d.qvel[:] = qpos, qvel
+    out = np.zeros((len(ctrls), len(bodies), 3))
+    for t, c in enumerate(ctrls):
+        d.ctrl[:] = c
+        for _ in range(substeps):
+            mujoco.mj_step(mm, d)
+        out[t] = d.xpos[bodies]
+    return out
+
+
+def summary(values) -> dict:
+    """median, 99th percentile and max of a list of errors (m)."""
+    v = np.asarray(values, np.float64)
+    return {"median": float(np.median(v)), "p99": float(np.percentile(v, 99)), "max": float(v.max())}
 
 
 def compare(robots: Sequence[Morphology], options: SolverOptions = SolverOptions(), steps: int = 25,
@@ -109,18 +152,15 @@ def compare(robots: Sequence[Morphology], options: SolverOptions = SolverOptions
     f = jax.jit(jax.vmap(run), compiler_options=compiler_options)
     xs = np.asarray(f(jnp.arange(R), jnp.asarray(qpos, jnp.float32), jnp.asarray(qvel, jnp.float32),
                       jnp.asarray(act24, jnp.float32), jnp.asarray(tab.ctrl_src)))
+    padded_c = padded_c_models(sm)
     out = []
     for r, m in enumerate(robots):
-        mm = alone[r]
-        d = mujoco.MjData(mm)
-        d.qpos[:], d.qvel[:] = starts[r]
-        errs = np.zeros(steps)
-        for t in range(steps):
-            d.ctrl[:] = actions[r][t]
-            for _ in range(substeps):
-                mujoco.mj_step(mm, d)
-            # MuJoCo C and MJX both leave xpos at the start of the last substep
-            mjx_pos = xs[r, t, bodies[r, :m.num_nodes]]
-            errs[t] = np.abs(mjx_pos - d.xpos[1:1 + m.num_nodes]).max()
-        out.append(Result(m.name, float(errs.max()), errs))
+        real = bodies[r, :m.num_nodes]
+        x_alone = _run_c(alone[r], *starts[r], actions[r], substeps, np.arange(1, 1 + m.num_nodes))
+        ctrl = np.concatenate([np.clip(act24[r], -1, 1), np.zeros((steps, 1))], axis=1)[:, tab.ctrl_src[r]]
+        x_padded = _run_c(padded_c[r], qpos[r], qvel[r], ctrl, substeps, real)
+        x_mjx = xs[r][:, real]
+        err = np.abs(x_mjx - x_alone).max(axis=(1, 2))
+        out.append(Result(m.name, float(err.max()), float(np.abs(x_padded - x_alone).max()),
+                          float(np.abs(x_mjx - x_padded).max()), err))
     return out

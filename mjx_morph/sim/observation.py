@@ -10,19 +10,42 @@ The 17 time-varying entries are 0-12, 30, 31, 41, 42; the other 35 are the raw s
 robot (`model.Tables.static_feat`) and added here. body_xvelp/xvelr are mujoco-py's `body_xvelp/xvelr`, which
 MetaMorph reads: `mj_jacBody(body) @ qvel`, the world-frame velocity of the body *origin* (= MuJoCo's
 `mj_objectVelocity` of mjOBJ_XBODY, not of mjOBJ_BODY, the centre of mass, which mujoco-py does not use).
-Computed as the body's `cvel` moved from its root's subtree centre of mass to the body origin.
 
-Which kinematics: like MetaMorph (mujoco-py reads `sim.data` after `mj_step`), positions, orientations and
-velocities of bodies are those MuJoCo computed at the start of the last physics substep, while qpos/qvel are the
-current ones; after a reset the kinematics are recomputed from the reset state (MetaMorph's `set_state` calls
-`mj_forward`).
+Which kinematics: like MetaMorph (mujoco-py reads `sim.data` after `mj_step`), positions and orientations of bodies
+are those MuJoCo computed at the start of the last physics substep, while qpos/qvel are the current ones. Body
+velocities are mujoco-py's `body_xvelp/xvelr` read after the step: the Jacobian of the start of the last substep
+(`cdof`, `xpos`, `subtree_com`) times the *current* qvel, i.e. the new velocities (not `cvel`, which MuJoCo
+computed from the qvel before the last integration). `body_velocity` builds that spatial velocity, `cvel` with the
+current qvel: sum over the dofs of the body and its ancestors of cdof * qvel. After a reset the kinematics are
+recomputed from the reset state (MetaMorph's `set_state` calls `mj_forward`), where both agree.
 """
 from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from ..layout import OBS_DIM
+
+
+def ancestor_dofs(mm) -> np.ndarray:
+    """(nbody, nv) float32: 1 where dof j moves body b (j belongs to b or to an ancestor of b). Static: every
+    robot of a set shares the tree."""
+    out = np.zeros((mm.nbody, mm.nv), np.float32)
+    for b in range(mm.nbody):
+        a = b
+        while True:
+            out[b, mm.dof_bodyid == a] = 1.0
+            if a == 0:
+                break
+            a = mm.body_parentid[a]
+    return out
+
+
+def body_velocity(ancestors: jax.Array, cdof: jax.Array, qvel: jax.Array) -> jax.Array:
+    """(nbody, 6) spatial velocity in MuJoCo's `cvel` layout (angular, linear at the root's subtree com) from the
+    Jacobian `cdof` (nv, 6) and `qvel`: what `mj_comVel` gives for this qvel."""
+    return ancestors @ (cdof * qvel[:, None])
 
 
 def object_velocity(cvel: jax.Array, xpos: jax.Array, subtree_com: jax.Array) -> tuple[jax.Array, jax.Array]:
@@ -33,8 +56,9 @@ def object_velocity(cvel: jax.Array, xpos: jax.Array, subtree_com: jax.Array) ->
 
 
 def proprio(xpos, xquat, cvel, subtree_com, qpos, qvel, tab, node_mask, act_mask) -> jax.Array:
-    """(12, 52) float32 observation of one env. Arrays are one env's MJX data; `tab` one robot's `Tables` row.
-    All robot bodies hang from the torso (body 1), so the root subtree com is `subtree_com[1]`."""
+    """(12, 52) float32 observation of one env. Arrays are one env's MJX data, `cvel` from `body_velocity` with the
+    current qvel; `tab` one robot's `Tables` row. All robot bodies hang from the torso (body 1), so the root
+    subtree com is `subtree_com[1]`."""
     b = tab.body_of_token
     p = xpos[b]
     p = p.at[:, 0].add(-xpos[1, 0])
