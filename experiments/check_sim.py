@@ -3,6 +3,7 @@
     python -m experiments.check_sim unimal100/train                 # default solver settings (5 / 8)
     python -m experiments.check_sim unimal100/test mujoco_defaults=true   # MuJoCo's defaults (100 / 50) too
     python -m experiments.check_sim gen/train iterations=100 ls_iterations=50 steps=25
+    python -m experiments.check_sim unimal100/train mutated=1000    # 1000 mutants of the train robots, one tree
 
 Prints per robot the worst body-position error (m) over `steps` control steps of the padded MJX robot against the
 robot alone in MuJoCo C on MetaMorph's floor, split into the padding's share (padded vs alone, both MuJoCo C) and
@@ -22,6 +23,7 @@ from mjx_morph.sim import fidelity
 from mjx_morph.sim.env import EnvConfig
 from mjx_morph.sim.padding import SolverOptions
 from mjx_morph.sim.supertree import build_shared_tree
+from mjx_morph.unimal.mutations import mutated_robots
 from mjx_morph.unimal.sets import load_set
 
 from . import cli
@@ -39,6 +41,9 @@ class CheckSimConfig:
     steps: int = 25                          # control steps compared
     tolerance: float = fidelity.TOLERANCE    # m; robots over it make the exit status 1
     seed: int = 0
+    floor_contacts: str = "box"              # box: MetaMorph's floor (MuJoCo C box, its rule in MJX); plane: a plane
+    mutated: int = 0                         # > 0: check this many robots made from the set by DERL's mutation
+                                             # operators (one random operator each) instead of the set itself
 
 
 register("check_sim_schema", CheckSimConfig)
@@ -46,6 +51,9 @@ register("check_sim_schema", CheckSimConfig)
 
 def check(a: CheckSimConfig) -> None:
     rs = load_set(a.set)
+    if a.mutated:
+        robots = mutated_robots(rs.robots, a.mutated, seed=a.seed)
+        rs = dataclasses.replace(rs, name=f"{rs.name} mutated x{a.mutated}", robots=tuple(robots))
     tree = build_shared_tree(rs.robots)
     print(f"# {rs.name}: shared tree of {tree.num_slots} bodies (nv {6 + 2 * tree.num_limb_slots}) "
           f"for {len(rs)} robots of at most {max(m.num_nodes for m in rs.robots)} bodies")
@@ -58,16 +66,19 @@ def check(a: CheckSimConfig) -> None:
         t0 = time.time()
         print(f"# comparing {len(rs)} robots with MuJoCo C (solver iterations {it}, line search {ls}; compiling "
               "the stacked model takes a while)...", flush=True)
-        res = fidelity.compare(rs.robots, opts, steps=a.steps, seed=a.seed, tree=tree)
+        res = fidelity.compare(rs.robots, opts, steps=a.steps, seed=a.seed, tree=tree,
+                                  floor_contacts=a.floor_contacts)
         print(f"# {rs.name}: {len(res)} robots, solver iterations {it}, line search {ls}, "
-              f"self-collision {'on' if a.self_collision else 'off'}, {a.steps} control steps "
+              f"self-collision {'on' if a.self_collision else 'off'}, floor {a.floor_contacts}, {a.steps} control steps "
               f"({time.time() - t0:.0f} s)")
-        print(f"{'robot':40s} {'error':>9s} {'padding':>9s} {'mjx':>9s}   (m; error = padded MJX vs alone in "
-              "MuJoCo C, padding = padded vs alone both in MuJoCo C, mjx = padded MJX vs padded MuJoCo C)")
+        print(f"{'robot':40s} {'error':>9s} {'padding':>9s} {'mjx':>9s} {'sensitiv.':>9s}   (m; error = padded MJX vs "
+              "alone in MuJoCo C, padding = padded vs alone both in MuJoCo C, mjx = padded MJX vs padded MuJoCo C, "
+              f"sensitivity = alone vs alone started {fidelity.PERTURBATION:g} away)")
         for r in res:
-            flag = "" if r.error <= a.tolerance else "   OVER TOLERANCE"
-            print(f"{r.name:40s} {r.error:9.2e} {r.padding:9.2e} {r.mjx:9.2e}{flag}")
-        for field in ("error", "padding", "mjx"):
+            flag = "" if r.error <= a.tolerance else (
+                "   OVER TOLERANCE (as sensitive on its own)" if r.sensitivity >= 0.1 * r.error else "   OVER TOLERANCE")
+            print(f"{r.name:40s} {r.error:9.2e} {r.padding:9.2e} {r.mjx:9.2e} {r.sensitivity:9.2e}{flag}")
+        for field in ("error", "padding", "mjx", "sensitivity"):
             s = fidelity.summary([getattr(r, field) for r in res])
             print(f"# {field:8s} median {s['median']:.2e}  p99 {s['p99']:.2e}  max {s['max']:.2e} m")
         worst = max(res, key=lambda r: r.error)

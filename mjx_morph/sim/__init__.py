@@ -15,7 +15,7 @@ Data flow (one idea per module):
     sampling     balanced / uniform robot sampling (a state the training loop updates once per iteration)
     env          `UnimalEnv`: the task (reset / step without reset / observe); `make_env`
     wrappers     `AutoReset`: auto-reset into a sampled robot, batched vreset / vstep / init (what make_env returns)
-    contact      MuJoCo C's plane-capsule contact frames for MJX
+    contact      floor-capsule contacts for MJX as MuJoCo C makes them against MetaMorph's box floor
     cpu_linalg   pure-JAX Cholesky for MJX on CPU with jaxlib < 0.11 (deadlock workaround)
     fidelity     padded MJX robots against the robots alone in MuJoCo C (`experiments.check_sim`)
 
@@ -33,26 +33,29 @@ Public API:
         robot, fell, out_of_bounds, timeout, unstable; meaningful where done)
     sampling.init(R, "balanced" | "uniform"); sampling.update(state, lengths, robots, done); state.probs
 
-Process-wide patches of MJX, made once when this package is imported (below): `contact.install()` (MuJoCo C's
-plane-capsule frames for every MJX step traced in the process; an env with `c_contact_frames=False` traces its own
-step with MJX's frames) and `cpu_linalg.install()` (pure-JAX Cholesky in MJX on CPU with jaxlib < 0.11).
+Process-wide patches of MJX, made once when this package is imported (below): `contact.install()` (the
+floor-capsule collider of every MJX step traced in the process applies the rule of the `contact.floor(rule)` block
+being traced, MuJoCo C's box-face contacts outside any; an env traces its step inside `floor(config.floor_contacts)`)
+and `cpu_linalg.install()` (pure-JAX Cholesky in MJX on CPU with jaxlib < 0.11).
 
 Deviations from MetaMorph / ModuMorph (each documented in its module):
 - solver: 5 Newton iterations and 8 line-search iterations instead of 100 / 50 (env.py; fidelity numbers in
   docs/benchmarks.md); physics in float32;
 - self-collision off by default (MetaMorph: on; option `self_collision`; its cost in docs/benchmarks.md);
-- ft / incline floors are infinite planes (tasks.py); csr / obstacle use one moving 0.1 m height-field patch
+- ft / incline floors are infinite planes through the top face of MetaMorph's floor boxes, whose capsule contacts
+  are those MuJoCo C makes against the boxes (contact.py; the boxes' edges are not modelled: ft's box is 200 m wide,
+  incline's slab 40 m wide and 150 m long); csr / obstacle use one moving 0.1 m height-field patch
   built from MetaMorph's height array, so observation and physics agree: no rugged-square y-mirror
   (terrain/corridor.py), obstacles are columns standing on the floor instead of boxes floating 0.1 m above it
   (terrain/obstacles.py), terrain contacts use MJX's height-field collider (terrain/__init__.py);
 - capsule masses of MuJoCo >= 2.1 (3-5% above MuJoCo 2.0) (padding.py);
 - a NaN or exploding state ends the episode as `unstable` (MetaMorph: a MuJoCo exception silently skipped the
   remaining substeps) (env.py);
-- plane-capsule contact frames follow MuJoCo C, not MJX 3.17 (contact.py);
-- body_xvelp / body_xvelr are mujoco-py's (velocity of the body origin), as MetaMorph read them (observation.py).
+- body_xvelp / body_xvelr are mujoco-py's read after `mj_step` (velocity of the body origin, the new qvel), as
+  MetaMorph read them (observation.py).
 """
 # MJX is patched once, when this package is imported (the missing-Warp message was silenced by mjx_morph's
-# own import): MuJoCo C's plane-capsule contact frames (contact.py) and, on old CPU jaxlibs, a pure-JAX Cholesky.
+# own import): MuJoCo C's floor-capsule contacts (contact.py) and, on old CPU jaxlibs, a pure-JAX Cholesky.
 from . import contact, cpu_linalg  # noqa: E402
 
 contact.install()

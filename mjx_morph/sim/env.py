@@ -33,7 +33,8 @@ default 100) and line-search iterations (8, default 50) -- 5 is the fewest with 
 robot stays within 1e-3 m of MuJoCo C over 0.5 s (`experiments.check_sim`; at 4, 3 of the 100 train robots drift
 1.5-2.1e-3 m after a contact event, docs/benchmarks.md); self-collision (off; MetaMorph has it on); physics in
 float32 (JAX's default; MetaMorph float64); the ft / incline floor is a plane whose capsule contacts are those
-MuJoCo C makes against MetaMorph's box floor (`floor_contacts="box"`, `contact.py`). Contacts otherwise as MetaMorph: condim 3, friction 0.7, pyramidal cone, Newton solver, Euler
+MuJoCo C makes against MetaMorph's box floor (`floor_contacts="box"`, `contact.py`). Contacts otherwise as
+MetaMorph: condim 3, friction 0.7, pyramidal cone, Newton solver, Euler
 integrator, parent-child filtering, no exclude pairs.
 """
 from __future__ import annotations

@@ -14,7 +14,10 @@ For each robot the largest world-position error of any body over the steps is re
 padded MJX against alone (everything we change), `padding` = padded C against alone (the padding and the pair cut
 alone, same float64 engine), `mjx` = padded MJX against padded C (MJX and float32 alone, same model). These robots
 are chaotic under tiny changes (a tiny difference at a contact onset grows into a different trajectory), so the
-horizon is short (25 control steps = 0.5 s).
+horizon is short (25 control steps = 0.5 s), and `sensitivity` measures each robot's own chaos: the robot alone
+against itself started 1e-7 away. MuJoCo C's box-face rule switches one end's contact off when the other end's
+centre dips below the face, a discontinuity that grows such differences fastest; a robot whose `sensitivity` is
+as large as its `error` is an exception explained by that, not by the padding or MJX.
 """
 from __future__ import annotations
 
@@ -29,6 +32,7 @@ from mujoco import mjx
 
 from ..unimal.mjcf import to_mjcf
 from ..unimal.morphology import MAX_NODES, Morphology
+from . import contact
 from .model import INERT_MARGIN, build_stacked_model, compile_padded
 from .padding import SolverOptions, WorldSpec
 from .supertree import SharedTree
@@ -37,6 +41,7 @@ from .terrain import Plane
 FLOOR = Plane().world().geoms          # ft's floor in MJX: a plane, top z = 1
 METAMORPH_FLOOR = '    <geom name="floor" type="box" size="100 100 1" pos="0 0 0" contype="0" conaffinity="1"/>'
 TOLERANCE = 1e-3
+PERTURBATION = 1e-7     # m / rad: the start-state nudge of the sensitivity column
 
 
 def alone_model(m: Morphology, options: SolverOptions, floor: str = METAMORPH_FLOOR) -> mujoco.MjModel:
@@ -64,6 +69,7 @@ class Result:
     error: float           # padded MJX vs alone in MuJoCo C: max |body position error| over bodies and steps (m)
     padding: float         # padded vs alone, both in MuJoCo C
     mjx: float             # padded MJX vs padded MuJoCo C
+    sensitivity: float     # alone vs alone with the start state moved by U(-1e-7, 1e-7): the robot's own chaos
     error_by_step: np.ndarray
 
 
@@ -101,8 +107,13 @@ def summary(values) -> dict:
 
 def compare(robots: Sequence[Morphology], options: SolverOptions = SolverOptions(), steps: int = 25,
             substeps: int = 4, seed: int = 0, tree: SharedTree | None = None,
-            compiler_options: dict | None = None) -> list[Result]:
+            compiler_options: dict | None = None, floor_contacts: str = "box") -> list[Result]:
+    """Compare every robot (see the module docstring). `floor_contacts`: "box" (MetaMorph's box floor in MuJoCo C,
+    its rule in MJX) or "plane" (a plane in MuJoCo C, MuJoCo C's plane rule in MJX)."""
     robots = tuple(robots)
+    if floor_contacts not in ("box", "plane"):
+        raise ValueError(f"floor_contacts={floor_contacts!r}: expected 'box' or 'plane'")
+    c_floor = METAMORPH_FLOOR if floor_contacts == "box" else FLOOR
     sm = build_stacked_model(robots, WorldSpec(geoms=FLOOR), options, tree=tree)
     R = len(robots)
     nq, nv = sm.mj_models[0].nq, sm.mj_models[0].nv
@@ -110,7 +121,7 @@ def compare(robots: Sequence[Morphology], options: SolverOptions = SolverOptions
     # start states and actions, in the alone robot's layout
     starts, actions, alone = [], [], []
     for m in robots:
-        mm = alone_model(m, options)
+        mm = alone_model(m, options, c_floor)
         alone.append(mm)
         q = mm.qpos0 + rng.uniform(-0.005, 0.005, mm.nq)
         v = rng.uniform(-0.005, 0.005, mm.nv)
@@ -149,10 +160,13 @@ def compare(robots: Sequence[Morphology], options: SolverOptions = SolverOptions
         _, xs = jax.lax.scan(control, d, a24)
         return xs
 
-    f = jax.jit(jax.vmap(run), compiler_options=compiler_options)
+    with contact.floor(floor_contacts):
+        f = jax.jit(jax.vmap(run), compiler_options=compiler_options).lower(
+            jnp.arange(R), jnp.asarray(qpos, jnp.float32), jnp.asarray(qvel, jnp.float32),
+            jnp.asarray(act24, jnp.float32), jnp.asarray(tab.ctrl_src)).compile()
     xs = np.asarray(f(jnp.arange(R), jnp.asarray(qpos, jnp.float32), jnp.asarray(qvel, jnp.float32),
                       jnp.asarray(act24, jnp.float32), jnp.asarray(tab.ctrl_src)))
-    padded_c = padded_c_models(sm)
+    padded_c = padded_c_models(sm, c_floor)
     out = []
     for r, m in enumerate(robots):
         real = bodies[r, :m.num_nodes]
@@ -160,7 +174,10 @@ def compare(robots: Sequence[Morphology], options: SolverOptions = SolverOptions
         ctrl = np.concatenate([np.clip(act24[r], -1, 1), np.zeros((steps, 1))], axis=1)[:, tab.ctrl_src[r]]
         x_padded = _run_c(padded_c[r], qpos[r], qvel[r], ctrl, substeps, real)
         x_mjx = xs[r][:, real]
+        q, v = starts[r]
+        nudge = rng.uniform(-PERTURBATION, PERTURBATION, q.shape)
+        x_nudged = _run_c(alone[r], q + nudge, v, actions[r], substeps, np.arange(1, 1 + m.num_nodes))
         err = np.abs(x_mjx - x_alone).max(axis=(1, 2))
         out.append(Result(m.name, float(err.max()), float(np.abs(x_padded - x_alone).max()),
-                          float(np.abs(x_mjx - x_padded).max()), err))
+                          float(np.abs(x_mjx - x_padded).max()), float(np.abs(x_nudged - x_alone).max()), err))
     return out

@@ -230,3 +230,17 @@ def mutate(m: Morphology, op: str, rng, *, force_change: bool = False) -> Morpho
     if not apply(d, op, as_rng(rng), force_change):
         return m
     return d.to_morphology()
+
+
+def mutated_robots(robots: Sequence[Morphology], num: int, seed: int = 0, rounds: int = 1) -> list[Morphology]:
+    """`num` robots made from `robots` by DERL's operators: robot k is `robots[k % len(robots)]` after `rounds`
+    random operators (`random_op`), named `<parent>-mut<k>`. Robots outside the training family for fidelity checks
+    (`experiments.check_sim SET mutated=1000`)."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for k in range(num):
+        m = robots[k % len(robots)]
+        for _ in range(rounds):
+            m = mutate(m, random_op(Draft.from_morphology(m), rng), rng)
+        out.append(dataclasses.replace(m, name=f"{robots[k % len(robots)].name}-mut{k}"))
+    return out
