@@ -14,6 +14,9 @@
    see docs/benchmarks.md);
 5. gives inert geoms a margin of -1e4 m: MJX activates a contact when `dist < margin`, so inert geoms never touch
    anything (in any pose, with self-collision on too) while the static contact structure stays shared.
+With self-collision on (and `SolverOptions.self_collision_cut`, unless the caller gave `self_pairs`), step 2 first
+finds the slot pairs that some robot of the set can make touch (`selfcontact.py`, cached per robot) and the padded
+models exclude all other pairs; `StackedModel.self_contact` summarises the pairs MJX checks.
 
 It also precomputes the per-robot constants the observation and action code needs (`Robots` for the policy,
 `Tables` for the simulation), all as arrays with the robot axis first.
@@ -32,7 +35,7 @@ from mujoco import mjx
 from ..unimal.mjcf import compile_model
 from ..layout import CTX_DIM, NUM_ACTIONS, NUM_TOKENS, OBS_DIM, Robots
 from ..unimal.morphology import Morphology
-from . import padding
+from . import padding, selfcontact
 from .padding import SolverOptions, WorldSpec
 from .supertree import SharedTree, build_shared_tree
 
@@ -95,7 +98,8 @@ class StackedModel:
     tables: Tables
     mj_models: tuple[mujoco.MjModel, ...]
     world: WorldSpec
-    options: SolverOptions
+    options: SolverOptions      # as used: `self_pairs` filled in when the cut was searched here
+    self_contact: selfcontact.SelfPairSummary | None = None   # `.line()` for the logs
 
     @property
     def num_robots(self) -> int:
@@ -177,6 +181,10 @@ def build_stacked_model(robots: Sequence[Morphology], world: WorldSpec = WorldSp
                         options: SolverOptions = SolverOptions(), tree: SharedTree | None = None) -> StackedModel:
     robots = tuple(robots)
     tree = tree or build_shared_tree(robots)
+    search = None
+    if options.self_collision and options.self_collision_cut and options.self_pairs is None:
+        search = selfcontact.find_slot_pairs(robots, tree)
+        options = dataclasses.replace(options, self_pairs=search.kept)
     mjm = compile_padded(robots, tree, world, options)
     cpu = jax.devices("cpu")[0]
     mxs = []
@@ -195,8 +203,10 @@ def build_stacked_model(robots: Sequence[Morphology], world: WorldSpec = WorldSp
         mxs[r] = mx.replace(geom_margin=margin)
     model, axes = _stack(mxs)
     policy, tables = _robot_constants(robots, tree, mjm)
+    kept = options.self_pairs if options.self_collision_cut else None
+    summary = selfcontact.summarise(robots, tree, options.self_collision, kept, mjm[0], search)
     return StackedModel(robots=robots, tree=tree, model=model, axes=axes, policy=policy, tables=tables,
-                        mj_models=tuple(mjm), world=world, options=options)
+                        mj_models=tuple(mjm), world=world, options=options, self_contact=summary)
 
 
 def static_features(mm: mujoco.MjModel, body: int, joints: Sequence[int | None]) -> np.ndarray:
