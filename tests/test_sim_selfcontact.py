@@ -10,7 +10,7 @@ import pytest
 from mujoco.mjx._src import collision_driver
 
 from mjx_morph.sim import fidelity, padding, selfcontact
-from mjx_morph.sim.model import build_stacked_model, compile_padded
+from mjx_morph.sim.model import build_stacked_model, compile_padded, self_pair_summary
 from mjx_morph.sim.padding import SolverOptions, WorldSpec
 from mjx_morph.sim.supertree import build_shared_tree
 from mjx_morph.unimal.mjcf import compile_model
@@ -118,11 +118,15 @@ def test_padded_models_check_exactly_the_kept_pairs(robots):
     assert summary.touching is not None and summary.touching <= summary.kept
     assert dict(summary.mjx_pairs)["capsule-capsule"] + dict(summary.mjx_pairs).get("sphere-capsule", 0) == len(kept)
     assert f"kept {len(kept)} of {summary.candidates} candidates ({summary.used} used by some robot" in summary.line()
+    alone = self_pair_summary(rs, world, SolverOptions(self_collision=True))   # without the MJX model: the same
+    assert dataclasses.replace(alone, seconds=0.0) == dataclasses.replace(summary, seconds=0.0)
     # without the cut: every pair that is not parent-child
     no_cut = SolverOptions(self_collision=True, self_collision_cut=False)
     mm = compile_padded(rs, tree, world, no_cut)[0]
     S = tree.num_slots
     assert len(_geom_pairs(mm)) == len(selfcontact.candidate_slot_pairs(tree)) + S
+    summary = self_pair_summary(rs, world, no_cut)
+    assert not summary.cut and summary.kept == summary.candidates and "no cut" in summary.line()
     assert padding.excluded_slot_pairs(tree, no_cut) == []
     # self-collision off: robot-floor pairs only, and no excludes written
     off = SolverOptions()

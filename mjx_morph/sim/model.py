@@ -181,10 +181,7 @@ def build_stacked_model(robots: Sequence[Morphology], world: WorldSpec = WorldSp
                         options: SolverOptions = SolverOptions(), tree: SharedTree | None = None) -> StackedModel:
     robots = tuple(robots)
     tree = tree or build_shared_tree(robots)
-    search = None
-    if options.self_collision and options.self_collision_cut and options.self_pairs is None:
-        search = selfcontact.find_slot_pairs(robots, tree)
-        options = dataclasses.replace(options, self_pairs=search.kept)
+    options, search = _with_self_pairs(robots, tree, options)
     mjm = compile_padded(robots, tree, world, options)
     cpu = jax.devices("cpu")[0]
     mxs = []
@@ -203,10 +200,36 @@ def build_stacked_model(robots: Sequence[Morphology], world: WorldSpec = WorldSp
         mxs[r] = mx.replace(geom_margin=margin)
     model, axes = _stack(mxs)
     policy, tables = _robot_constants(robots, tree, mjm)
-    kept = options.self_pairs if options.self_collision_cut else None
-    summary = selfcontact.summarise(robots, tree, options.self_collision, kept, mjm[0], search)
+    summary = _self_pair_summary(robots, tree, options, mjm[0], search)
     return StackedModel(robots=robots, tree=tree, model=model, axes=axes, policy=policy, tables=tables,
                         mj_models=tuple(mjm), world=world, options=options, self_contact=summary)
+
+
+def _with_self_pairs(robots, tree: SharedTree, options: SolverOptions):
+    """`options` with `self_pairs` filled in when self-collision and the cut are on and the caller gave none, and
+    the search (or None)."""
+    if options.self_collision and options.self_collision_cut and options.self_pairs is None:
+        search = selfcontact.find_slot_pairs(robots, tree)
+        return dataclasses.replace(options, self_pairs=search.kept), search
+    return options, None
+
+
+def _self_pair_summary(robots, tree: SharedTree, options: SolverOptions, mm: mujoco.MjModel, search):
+    kept = options.self_pairs if options.self_collision_cut else None
+    return selfcontact.summarise(robots, tree, options.self_collision, kept, mm, search)
+
+
+def self_pair_summary(robots: Sequence[Morphology], world: WorldSpec = WorldSpec(),
+                      options: SolverOptions = SolverOptions(), tree: SharedTree | None = None
+                      ) -> selfcontact.SelfPairSummary:
+    """The `StackedModel.self_contact` that `build_stacked_model` gives for these arguments, without building the
+    MJX model (one padded robot is compiled), for tools that build their models elsewhere; `.line()` prints it.
+    The per-robot search is cached, so a model built afterwards in the same process does not repeat it."""
+    robots = tuple(robots)
+    tree = tree or build_shared_tree(robots)
+    options, search = _with_self_pairs(robots, tree, options)
+    mm = mujoco.MjModel.from_xml_string(padding.padded_mjcf(robots[0], tree, 0, world, options))
+    return _self_pair_summary(robots, tree, options, mm, search)
 
 
 def static_features(mm: mujoco.MjModel, body: int, joints: Sequence[int | None]) -> np.ndarray:
