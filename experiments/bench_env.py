@@ -72,6 +72,8 @@ def run_case(c: dict) -> dict:
     t0 = time.perf_counter()
     env = make_env(rs, config=config)
     build_s = time.perf_counter() - t0
+    pairs = env.sm.self_contact
+    print(f"[bench_env] {pairs.line()}", file=sys.stderr, flush=True)
     n, steps = int(c["num_envs"]), int(c["steps"])
     sampler = sampling.init(env.num_robots, "balanced")
     key = jax.random.PRNGKey(int(c["seed"]))
@@ -131,6 +133,7 @@ def run_case(c: dict) -> dict:
         "tree_bodies": env.sm.tree.num_slots, "nv": int(env.sm.mj_models[0].nv), "num_envs": n, "steps": steps,
         "solver_iterations": config.iterations, "ls_iterations": config.ls_iterations,
         "self_collision": config.self_collision, "group": c.get("group"),
+        "self_pairs": pairs.kept, "self_pair_candidates": pairs.candidates, "contacts": pairs.mjx_contacts,
         "control_steps_per_s": round(n * steps / dt, 1), "rollout_s": round(dt, 4),
         "compile_s": round(compile_s, 1), "build_s": round(build_s, 1),
         "program_mem_gb": round((getattr(mem, "argument_size_in_bytes", 0) + getattr(mem, "output_size_in_bytes", 0)

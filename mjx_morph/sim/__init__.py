@@ -2,7 +2,9 @@
 
 Data flow (one idea per module):
     supertree    shared tree of a robot set, the embedding of every robot, topology groups
-    padding      MJCF of a robot padded onto the tree (locked joints, inert slots) + its index tables
+    selfcontact  which slot pairs of a set can ever touch (the self-collision pair cut; a provable bound)
+    padding      MJCF of a robot padded onto the tree (locked joints, inert slots, excluded self pairs) + its
+                 index tables
     model        compile, fix up and stack the padded robots into one mjx.Model with a robot axis;
                  per-robot constants for the policy (`Robots`) and the simulation (`Tables`)
     tasks        the four tasks' constants (ft, incline, csr, obstacle)

@@ -14,6 +14,9 @@
    see docs/benchmarks.md);
 5. gives inert geoms a margin of -1e4 m: MJX activates a contact when `dist < margin`, so inert geoms never touch
    anything (in any pose, with self-collision on too) while the static contact structure stays shared.
+With self-collision on (and `SolverOptions.self_collision_cut`, unless the caller gave `self_pairs`), step 2 first
+finds the slot pairs that some robot of the set can make touch (`selfcontact.py`, cached per robot) and the padded
+models exclude all other pairs; `StackedModel.self_contact` summarises the pairs MJX checks.
 
 It also precomputes the per-robot constants the observation and action code needs (`Robots` for the policy,
 `Tables` for the simulation), all as arrays with the robot axis first.
@@ -32,7 +35,7 @@ from mujoco import mjx
 from ..unimal.mjcf import compile_model
 from ..layout import CTX_DIM, NUM_ACTIONS, NUM_TOKENS, OBS_DIM, Robots
 from ..unimal.morphology import Morphology
-from . import padding
+from . import padding, selfcontact
 from .padding import SolverOptions, WorldSpec
 from .supertree import SharedTree, build_shared_tree
 
@@ -95,7 +98,8 @@ class StackedModel:
     tables: Tables
     mj_models: tuple[mujoco.MjModel, ...]
     world: WorldSpec
-    options: SolverOptions
+    options: SolverOptions      # as used: `self_pairs` filled in when the cut was searched here
+    self_contact: selfcontact.SelfPairSummary | None = None   # `.line()` for the logs
 
     @property
     def num_robots(self) -> int:
@@ -177,6 +181,7 @@ def build_stacked_model(robots: Sequence[Morphology], world: WorldSpec = WorldSp
                         options: SolverOptions = SolverOptions(), tree: SharedTree | None = None) -> StackedModel:
     robots = tuple(robots)
     tree = tree or build_shared_tree(robots)
+    options, search = _with_self_pairs(robots, tree, options)
     mjm = compile_padded(robots, tree, world, options)
     cpu = jax.devices("cpu")[0]
     mxs = []
@@ -195,8 +200,36 @@ def build_stacked_model(robots: Sequence[Morphology], world: WorldSpec = WorldSp
         mxs[r] = mx.replace(geom_margin=margin)
     model, axes = _stack(mxs)
     policy, tables = _robot_constants(robots, tree, mjm)
+    summary = _self_pair_summary(robots, tree, options, mjm[0], search)
     return StackedModel(robots=robots, tree=tree, model=model, axes=axes, policy=policy, tables=tables,
-                        mj_models=tuple(mjm), world=world, options=options)
+                        mj_models=tuple(mjm), world=world, options=options, self_contact=summary)
+
+
+def _with_self_pairs(robots, tree: SharedTree, options: SolverOptions):
+    """`options` with `self_pairs` filled in when self-collision and the cut are on and the caller gave none, and
+    the search (or None)."""
+    if options.self_collision and options.self_collision_cut and options.self_pairs is None:
+        search = selfcontact.find_slot_pairs(robots, tree)
+        return dataclasses.replace(options, self_pairs=search.kept), search
+    return options, None
+
+
+def _self_pair_summary(robots, tree: SharedTree, options: SolverOptions, mm: mujoco.MjModel, search):
+    kept = options.self_pairs if options.self_collision_cut else None
+    return selfcontact.summarise(robots, tree, options.self_collision, kept, mm, search)
+
+
+def self_pair_summary(robots: Sequence[Morphology], world: WorldSpec = WorldSpec(),
+                      options: SolverOptions = SolverOptions(), tree: SharedTree | None = None
+                      ) -> selfcontact.SelfPairSummary:
+    """The `StackedModel.self_contact` that `build_stacked_model` gives for these arguments, without building the
+    MJX model (one padded robot is compiled), for tools that build their models elsewhere; `.line()` prints it.
+    The per-robot search is cached, so a model built afterwards in the same process does not repeat it."""
+    robots = tuple(robots)
+    tree = tree or build_shared_tree(robots)
+    options, search = _with_self_pairs(robots, tree, options)
+    mm = mujoco.MjModel.from_xml_string(padding.padded_mjcf(robots[0], tree, 0, world, options))
+    return _self_pair_summary(robots, tree, options, mm, search)
 
 
 def static_features(mm: mujoco.MjModel, body: int, joints: Sequence[int | None]) -> np.ndarray:

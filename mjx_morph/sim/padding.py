@@ -18,7 +18,10 @@ documented deviation, not corrected.
 
 The world (floor, incline, height field) and the options (solver iterations, self-collision) come from the caller;
 robot geoms use contype 1 and conaffinity 1 with self-collision on, 0 with it off; terrain geoms contype 0,
-conaffinity 1, so with self-collision off only robot-terrain pairs are ever generated.
+conaffinity 1, so with self-collision off only robot-terrain pairs are ever generated. With self-collision on and
+`SolverOptions.self_pairs` given (the slot pairs that can touch, `selfcontact.py`), every other slot pair that is not
+parent-child is excluded (`<contact><exclude>`); the list is the same for every robot of the set, so the static
+MJX structure stays shared.
 """
 from __future__ import annotations
 
@@ -29,6 +32,7 @@ import numpy as np
 
 from ..unimal.mjcf import format_number as _num, format_vector as _vec  # the writer's exact formatting
 from ..unimal.morphology import Joint, Morphology
+from .selfcontact import candidate_slot_pairs
 from .supertree import SharedTree
 
 
@@ -63,10 +67,20 @@ class WorldSpec:
 
 @dataclasses.dataclass(frozen=True)
 class SolverOptions:
+    """Solver and contact options of the padded models.
+
+    self_collision      robot geoms collide with each other (parent-child pairs are always filtered)
+    self_collision_cut  with self-collision: `model.build_stacked_model` finds the slot pairs that can touch
+                        (`selfcontact.py`) and fills in `self_pairs`; False keeps every pair (for comparisons)
+    self_pairs          with self-collision and the cut on: the slot pairs (s, t), s < t, that keep their
+                        contacts, every other pair that is not parent-child is excluded (None: none excluded)
+    """
     iterations: int = 5
     ls_iterations: int = 8
     self_collision: bool = False
     timestep: float = 0.005
+    self_collision_cut: bool = True
+    self_pairs: frozenset | None = None
 
     def option_xml(self) -> str:
         return (f'  <option timestep="{_num(self.timestep)}" iterations="{self.iterations}" '
@@ -82,6 +96,18 @@ def _joint(name: str, j: Joint | None, kind: str, indent: str) -> str:
                 f'armature="{_num(LOCK_ARMATURE)}" damping="{_num(LOCK_DAMPING)}" stiffness="{_num(LOCK_STIFFNESS)}"/>')
     return (f'{indent}<joint name="{name}" pos="{_vec(j.pos)}" axis="{_vec(j.axis)}" range="{_vec(j.range)}" '
             f'armature="{_num(j.armature)}" damping="{_num(j.damping)}" stiffness="{_num(j.stiffness)}"/>')
+
+
+def excluded_slot_pairs(tree: SharedTree, options: SolverOptions) -> list[tuple[int, int]]:
+    """The slot pairs (s, t), s < t, whose contacts the padded models exclude: with self-collision on, the cut on
+    and `self_pairs` given, every pair that is neither parent-child nor kept; else none."""
+    if not (options.self_collision and options.self_collision_cut and options.self_pairs is not None):
+        return []
+    return sorted(candidate_slot_pairs(tree) - options.self_pairs)
+
+
+def _body_name(slot: int) -> str:
+    return "torso/0" if slot == 0 else f"slot/{slot}"
 
 
 def padded_mjcf(m: Morphology, tree: SharedTree, robot: int, world: WorldSpec = WorldSpec(),
@@ -135,7 +161,13 @@ def padded_mjcf(m: Morphology, tree: SharedTree, robot: int, world: WorldSpec = 
 
     for c in tree.children(0):
         write(c, "      ")
-    lines += ["    </body>", "  </worldbody>", "  <actuator>"]
+    lines += ["    </body>", "  </worldbody>"]
+    excluded = excluded_slot_pairs(tree, options)
+    if excluded:
+        lines.append("  <contact>")
+        lines += [f'    <exclude body1="{_body_name(s)}" body2="{_body_name(t)}"/>' for s, t in excluded]
+        lines.append("  </contact>")
+    lines.append("  <actuator>")
     for s in range(1, tree.num_slots):
         i = limb_of_slot.get(s)
         for k in "xy":
