@@ -21,7 +21,8 @@ from omegaconf import MISSING
 from mjx_morph.run import register
 from mjx_morph.sim import fidelity
 from mjx_morph.sim.env import EnvConfig
-from mjx_morph.sim.padding import SolverOptions
+from mjx_morph.sim.model import self_pair_summary
+from mjx_morph.sim.padding import SolverOptions, WorldSpec
 from mjx_morph.sim.supertree import build_shared_tree
 from mjx_morph.unimal.mutations import mutated_robots
 from mjx_morph.unimal.sets import load_set
@@ -57,6 +58,10 @@ def check(a: CheckSimConfig) -> None:
     tree = build_shared_tree(rs.robots)
     print(f"# {rs.name}: shared tree of {tree.num_slots} bodies (nv {6 + 2 * tree.num_limb_slots}) "
           f"for {len(rs)} robots of at most {max(m.num_nodes for m in rs.robots)} bodies")
+    opts0 = SolverOptions(iterations=a.iterations, ls_iterations=a.ls_iterations, self_collision=a.self_collision)
+    summary = self_pair_summary(rs.robots, WorldSpec(geoms=fidelity.FLOOR), opts0, tree)
+    if summary is not None:
+        print("# " + summary.line(), flush=True)
     settings = [(a.iterations, a.ls_iterations)]
     if a.mujoco_defaults and (100, 50) not in settings:
         settings.append((100, 50))

@@ -129,7 +129,7 @@ def test_padded_models_check_exactly_the_kept_pairs(robots):
     assert not summary.cut and summary.kept == summary.candidates and "no cut" in summary.line()
     assert padding.excluded_slot_pairs(tree, no_cut) == []
     # self-collision off: robot-floor pairs only, and no excludes written
-    off = SolverOptions()
+    off = SolverOptions(self_collision=False)
     assert "<exclude" not in padding.padded_mjcf(rs[0], tree, 0, world, off)
     assert len(_geom_pairs(compile_padded(rs[:1], build_shared_tree(rs[:1]), world, off)[0])) == rs[0].num_nodes
 
@@ -166,3 +166,50 @@ def test_hand_made_robot_keeps_the_touching_pair_and_cuts_the_far_one():
     wide = dataclasses.replace(m, limbs=limbs[:2] + (_limb(2, (0.1, 0.0, 0.0), (0.3, 0.0, 0.0), -170, 170),)
                                + limbs[3:])
     assert (node(3), node(4)) in selfcontact.robot_pairs(wide).touching
+
+
+def test_limb_pair_budget_loses_no_pair(robots):
+    """With the budget (MJX's closest-pairs cull at the most limb pairs any robot has, inert geoms out of the broad
+    phase) the stacked MJX model moves exactly as without it: same body positions over 15 control steps of random
+    actions, for robots whose limbs touch each other."""
+    import jax
+    import jax.numpy as jnp
+    from mujoco import mjx
+    from mjx_morph.sim.model import limb_pair_budget
+
+    world = WorldSpec(geoms=fidelity.FLOOR)
+    tree = build_shared_tree(robots)
+    with_budget = build_stacked_model(robots, world, SolverOptions(), tree=tree)
+    without = build_stacked_model(robots, world, SolverOptions(), tree=tree, self_pair_budget=False)
+    budget = with_budget.options.self_pair_budget
+    limb_pairs = sum(1 for s, t in with_budget.options.self_pairs if s > 0)
+    assert budget == limb_pair_budget(tree, with_budget.options) and budget < limb_pairs     # it does cull
+    assert without.options.self_pair_budget is None
+    assert with_budget.self_contact.mjx_contacts < without.self_contact.mjx_contacts
+    fast = {"xla_backend_optimization_level": 0, "xla_llvm_disable_expensive_passes": True}
+    rng = np.random.default_rng(0)
+    nu = with_budget.mj_models[0].nu
+    ctrls = jnp.asarray(rng.uniform(-1, 1, (len(robots), 15, nu)), jnp.float32)
+
+    def rollout(sm):
+        template = mjx.make_data(sm.model_for(0), impl="jax")
+
+        def run(robot, ctrl):
+            m = sm.model_for(robot)
+            d = template.replace(qpos=m.qpos0)
+
+            def control(d, c):
+                d = jax.lax.fori_loop(0, 4, lambda i, dd: mjx.step(m, dd), d.replace(ctrl=c))
+                con = d._impl.contact
+                active = con.dist < con.includemargin
+                limbs = jnp.all(jnp.asarray(m.geom_type)[con.geom] == 3, axis=1)   # capsule-capsule
+                return d, (d.xpos, jnp.sum(active), jnp.sum(active & limbs))
+            return jax.lax.scan(control, d, ctrl)[1]
+        return jax.jit(jax.vmap(run), compiler_options=fast)(jnp.arange(len(robots)), ctrls)
+
+    (xa, na, la), (xb, nb, lb) = rollout(with_budget), rollout(without)
+    np.testing.assert_allclose(np.asarray(xa), np.asarray(xb), atol=1e-5)
+    # contacts with the floor and between limbs happened, the same number with and without the budget
+    np.testing.assert_array_equal(np.asarray(na), np.asarray(nb))
+    np.testing.assert_array_equal(np.asarray(la), np.asarray(lb))
+    assert np.asarray(la).sum() > 0

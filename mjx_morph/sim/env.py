@@ -31,7 +31,8 @@ where `done`).
 Options (EnvConfig), each a documented deviation where it differs from MetaMorph: solver iterations (5, MuJoCo's
 default 100) and line-search iterations (8, default 50) -- 5 is the fewest with which every original train and test
 robot stays within 1e-3 m of MuJoCo C over 0.5 s (`experiments.check_sim`; at 4, 3 of the 100 train robots drift
-1.5-2.1e-3 m after a contact event, docs/benchmarks.md); self-collision (off; MetaMorph has it on); physics in
+1.5-2.1e-3 m after a contact event, docs/benchmarks.md); self-collision (on, as MetaMorph, with the candidate
+pairs cut to those some robot of the set can make touch, `selfcontact.py`); physics in
 float32 (JAX's default; MetaMorph float64); the ft / incline floor is a plane whose capsule contacts are those
 MuJoCo C makes against MetaMorph's box floor (`floor_contacts="box"`, `contact.py`). Contacts otherwise as
 MetaMorph: condim 3, friction 0.7, pyramidal cone, Newton solver, Euler
@@ -64,7 +65,10 @@ class EnvConfig:
     task: str = "ft"                # ft | incline | csr | obstacle (sim/tasks.py)
     iterations: int = 5             # solver iterations (MuJoCo default 100)
     ls_iterations: int = 8          # line-search iterations (MuJoCo default 50)
-    self_collision: bool = False    # MetaMorph: on
+    self_collision: bool = True     # as MetaMorph (parent-child pairs filtered)
+    self_collision_cut: bool = True # check only the slot pairs some robot can make touch (selfcontact.py)
+    self_pair_budget: bool = True   # collide per env only as many limb pairs as the robot with the most has
+                                    # (exact: inert pairs are never picked; padding.SolverOptions)
     episode_length: int = EPISODE_LENGTH   # control steps (20 s)
     substeps: int = FRAME_SKIP
     reset_noise: float = RESET_NOISE
@@ -132,8 +136,9 @@ class UnimalEnv:
         self.morphologies = tuple(robots)
         self.terrain: terrain.Terrain = terrain.for_task(self.task, self.morphologies)
         opts = SolverOptions(iterations=config.iterations, ls_iterations=config.ls_iterations,
-                             self_collision=config.self_collision)
-        self.sm: StackedModel = build_stacked_model(self.morphologies, self.terrain.world(), opts)
+                             self_collision=config.self_collision, self_collision_cut=config.self_collision_cut)
+        self.sm: StackedModel = build_stacked_model(self.morphologies, self.terrain.world(), opts,
+                                                    self_pair_budget=config.self_pair_budget)
         self.robots: Robots = self.sm.policy
         if config.context_features is not None:
             self.robots = self.robots._replace(context=self.robots.context * context_mask(config.context_features))

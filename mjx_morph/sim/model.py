@@ -178,10 +178,13 @@ def _diff_static(a: mjx.Model, b: mjx.Model, i: int) -> str:
 
 
 def build_stacked_model(robots: Sequence[Morphology], world: WorldSpec = WorldSpec(),
-                        options: SolverOptions = SolverOptions(), tree: SharedTree | None = None) -> StackedModel:
+                        options: SolverOptions = SolverOptions(), tree: SharedTree | None = None,
+                        self_pair_budget: bool = True) -> StackedModel:
+    """See the module docstring. `self_pair_budget`: with self-collision, collide per env only as many limb-limb
+    pairs as the robot with the most has (`SolverOptions.self_pair_budget`; exact, see `limb_pair_budget`)."""
     robots = tuple(robots)
     tree = tree or build_shared_tree(robots)
-    options, search = _with_self_pairs(robots, tree, options)
+    options, search = _with_self_pairs(robots, tree, options, budget=self_pair_budget)
     mjm = compile_padded(robots, tree, world, options)
     cpu = jax.devices("cpu")[0]
     mxs = []
@@ -190,14 +193,17 @@ def build_stacked_model(robots: Sequence[Morphology], world: WorldSpec = WorldSp
         mxs.append(mx)
     rb = np.max(np.stack([np.asarray(mx._impl.geom_rbound_hfield) for mx in mxs]), axis=0)
     mxs = [mx.replace(_impl=mx._impl.replace(geom_rbound_hfield=rb)) for mx in mxs]
-    # inert geoms: never active (margin only decides activation in MJX; collision functions ignore it)
+    # inert geoms: never active (margin only decides activation in MJX; collision functions ignore it), and never
+    # among the closest pairs of the broad phase (MJX reads geom_rbound only there)
     for r, (m, mx) in enumerate(zip(robots, mxs)):
         used = {0} | set(tree.slot_of[r])
         margin = np.asarray(mx.geom_margin).copy()
+        rbound = np.asarray(mx.geom_rbound).copy()
         for s in range(tree.num_slots):
             if s not in used:
                 margin[mjm[r].body_geomadr[s + 1]] = INERT_MARGIN
-        mxs[r] = mx.replace(geom_margin=margin)
+                rbound[mjm[r].body_geomadr[s + 1]] = INERT_MARGIN
+        mxs[r] = mx.replace(geom_margin=margin, geom_rbound=rbound)
     model, axes = _stack(mxs)
     policy, tables = _robot_constants(robots, tree, mjm)
     summary = _self_pair_summary(robots, tree, options, mjm[0], search)
@@ -205,29 +211,48 @@ def build_stacked_model(robots: Sequence[Morphology], world: WorldSpec = WorldSp
                         mj_models=tuple(mjm), world=world, options=options, self_contact=summary)
 
 
-def _with_self_pairs(robots, tree: SharedTree, options: SolverOptions):
-    """`options` with `self_pairs` filled in when self-collision and the cut are on and the caller gave none, and
-    the search (or None)."""
+def _with_self_pairs(robots, tree: SharedTree, options: SolverOptions, budget: bool = False):
+    """`options` with `self_pairs` filled in when self-collision and the cut are on and the caller gave none (and
+    with `budget`, `self_pair_budget` = the most limb-limb pairs MJX must collide for any robot), and the search
+    (or None)."""
+    search = None
     if options.self_collision and options.self_collision_cut and options.self_pairs is None:
         search = selfcontact.find_slot_pairs(robots, tree)
-        return dataclasses.replace(options, self_pairs=search.kept), search
-    return options, None
+        options = dataclasses.replace(options, self_pairs=search.kept)
+    if budget and options.self_collision and options.self_pair_budget is None:
+        options = dataclasses.replace(options, self_pair_budget=limb_pair_budget(tree, options))
+    return options, search
+
+
+def limb_pair_budget(tree: SharedTree, options: SolverOptions) -> int:
+    """The most capsule-capsule pairs (two limb slots, not parent-child, not excluded) whose slots one robot uses:
+    with this budget and inert geoms out of the broad phase, MJX's closest-pairs cull never drops a real pair."""
+    pairs = options.self_pairs if options.self_collision_cut and options.self_pairs is not None \
+        else selfcontact.candidate_slot_pairs(tree)
+    limb_pairs = [(s, t) for s, t in pairs if s > 0 and t > 0]
+    most = 0
+    for slots in tree.slot_of:
+        used = set(slots)
+        most = max(most, sum(1 for s, t in limb_pairs if s in used and t in used))
+    return max(most, 1)
 
 
 def _self_pair_summary(robots, tree: SharedTree, options: SolverOptions, mm: mujoco.MjModel, search):
     kept = options.self_pairs if options.self_collision_cut else None
-    return selfcontact.summarise(robots, tree, options.self_collision, kept, mm, search)
+    summary = selfcontact.summarise(robots, tree, options.self_collision, kept, mm, search)
+    budget = options.self_pair_budget if options.self_collision else None
+    return None if summary is None else dataclasses.replace(summary, budget=budget)
 
 
 def self_pair_summary(robots: Sequence[Morphology], world: WorldSpec = WorldSpec(),
-                      options: SolverOptions = SolverOptions(), tree: SharedTree | None = None
-                      ) -> selfcontact.SelfPairSummary:
+                      options: SolverOptions = SolverOptions(), tree: SharedTree | None = None,
+                      self_pair_budget: bool = True) -> selfcontact.SelfPairSummary:
     """The `StackedModel.self_contact` that `build_stacked_model` gives for these arguments, without building the
     MJX model (one padded robot is compiled), for tools that build their models elsewhere; `.line()` prints it.
     The per-robot search is cached, so a model built afterwards in the same process does not repeat it."""
     robots = tuple(robots)
     tree = tree or build_shared_tree(robots)
-    options, search = _with_self_pairs(robots, tree, options)
+    options, search = _with_self_pairs(robots, tree, options, budget=self_pair_budget)
     mm = mujoco.MjModel.from_xml_string(padding.padded_mjcf(robots[0], tree, 0, world, options))
     return _self_pair_summary(robots, tree, options, mm, search)
 

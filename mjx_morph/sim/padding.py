@@ -74,13 +74,19 @@ class SolverOptions:
                         (`selfcontact.py`) and fills in `self_pairs`; False keeps every pair (for comparisons)
     self_pairs          with self-collision and the cut on: the slot pairs (s, t), s < t, that keep their
                         contacts, every other pair that is not parent-child is excluded (None: none excluded)
+    self_pair_budget    with self-collision: MJX collides only this many capsule-capsule pairs per env, the ones
+                        whose bounding spheres are closest (MJX's `max_geom_pairs`); `model.build_stacked_model`
+                        sets it to the most pairs of two real limbs any robot has, and gives inert geoms a bounding
+                        radius of -1e4 m so they are never among the closest: then no robot loses a pair
+                        (None: every pair, as without a budget)
     """
     iterations: int = 5
     ls_iterations: int = 8
-    self_collision: bool = False
+    self_collision: bool = True
     timestep: float = 0.005
     self_collision_cut: bool = True
     self_pairs: frozenset | None = None
+    self_pair_budget: int | None = None
 
     def option_xml(self) -> str:
         return (f'  <option timestep="{_num(self.timestep)}" iterations="{self.iterations}" '
@@ -167,6 +173,9 @@ def padded_mjcf(m: Morphology, tree: SharedTree, robot: int, world: WorldSpec = 
         lines.append("  <contact>")
         lines += [f'    <exclude body1="{_body_name(s)}" body2="{_body_name(t)}"/>' for s, t in excluded]
         lines.append("  </contact>")
+    if options.self_collision and options.self_pair_budget is not None:
+        lines += ["  <custom>", f'    <numeric name="max_geom_pairs" data="{int(options.self_pair_budget)}"/>',
+                  "  </custom>"]
     lines.append("  <actuator>")
     for s in range(1, tree.num_slots):
         i = limb_of_slot.get(s)

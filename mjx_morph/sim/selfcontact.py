@@ -676,6 +676,7 @@ class SelfPairSummary:
     mjx_pairs    MJX's candidate geom pairs of one compiled padded robot by geom types, terrain pairs included
                  (the same for every robot of the set)
     mjx_contacts contacts MJX allocates per env (ncon of every candidate pair's collision function)
+    budget       limb-limb pairs MJX collides per env (the closest; None: all), `SolverOptions.self_pair_budget`
     """
     self_collision: bool
     cut: bool
@@ -688,6 +689,7 @@ class SelfPairSummary:
     seconds: float
     mjx_pairs: tuple[tuple[str, int], ...]
     mjx_contacts: int
+    budget: int | None = None
 
     def line(self) -> str:
         """One line for the logs, e.g. "self-collision pairs: kept 144 of 325 candidates (193 used by some robot,
@@ -702,7 +704,8 @@ class SelfPairSummary:
             head = (f"self-collision pairs: kept {self.kept} of {self.candidates} candidates "
                     f"({self.used} used by some robot{shown}), found in {self.seconds:.1f} s")
         pairs = ", ".join(f"{k} {v}" for k, v in self.mjx_pairs)
-        return f"{head}; MJX pairs: {pairs}; {self.mjx_contacts} contacts per env"
+        budget = "" if self.budget is None else f" (limb pairs culled to the {self.budget} closest)"
+        return f"{head}; MJX pairs: {pairs}; {self.mjx_contacts} contacts per env{budget}"
 
 
 def summarise(robots: Sequence[Morphology], tree: SharedTree, self_collision: bool, kept: frozenset | None,
