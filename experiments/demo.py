@@ -3,7 +3,7 @@
 Trains R-MoMo on shipped generated robots, evaluates it zero-shot on generated robots it has never seen, and writes
 a report (learning curve, zero-shot returns) and, where OpenGL exists, a video. On a CPU it runs `preset=demo`
 (4 robots, a small network, 100k env steps: about 5 minutes of training on 2 cores); with an accelerator it runs the
-full-size R-MoMo on all 100 gen/train robots for 5 M steps. Extra `key=value` arguments override the training config.
+full-size R-MoMo on all 100 gen/train robots for 2 M steps. Extra `key=value` arguments override the training config.
 """
 from __future__ import annotations
 
@@ -23,7 +23,7 @@ from mjx_morph.unimal import render
 from . import cli
 
 CPU = ["preset=demo", "robots=gen/train", "run_dir=runs/demo"]
-ACCELERATOR = ["env=ft", "arch=rmomo", "robots=gen/train", "total_steps=5000000", "run_dir=runs/demo-gpu"]
+ACCELERATOR = ["env=ft", "arch=rmomo", "robots=gen/train", "total_steps=2000000", "run_dir=runs/demo-gpu"]
 UNSEEN_CPU = 8          # unseen robots evaluated on a CPU (all 100 of gen/test with an accelerator)
 
 
