@@ -30,8 +30,9 @@ where `done`).
 
 Options (EnvConfig), each a documented deviation where it differs from MetaMorph: solver iterations (5, MuJoCo's
 default 100) and line-search iterations (8, default 50) -- 5 is the fewest with which every original train and test
-robot stays within 1e-3 m of MuJoCo C over 0.5 s (`experiments.check_sim`; at 4, 3 of the 100 train robots drift
-1.5-2.1e-3 m after a contact event, docs/benchmarks.md); self-collision (on, as MetaMorph, with the candidate
+robot stayed within 1e-3 m of MuJoCo C over 0.5 s on a plane (`experiments.check_sim`; at 4, 3 of the 100 train
+robots drift 1.5-2.1e-3 m after a contact event; on MetaMorph's box floor a few robots exceed it at any setting,
+docs/benchmarks.md); self-collision (on, as MetaMorph, with the candidate
 pairs cut to those some robot of the set can make touch, `selfcontact.py`); physics in
 float32 (JAX's default; MetaMorph float64); the ft / incline floor is a plane whose capsule contacts are those
 MuJoCo C makes against MetaMorph's box floor (`floor_contacts="box"`, `contact.py`). Contacts otherwise as
