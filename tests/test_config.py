@@ -104,10 +104,10 @@ def test_missing_warp_message_is_silenced_but_other_output_is_not():
 
 def test_study_plan_passes_env_options_and_extra_overrides(capsys):
     from experiments import study
-    assert study.main(["train_size", "archs=[metamorph]", "seeds=[1]", "env=incline", "env.self_collision=true",
+    assert study.main(["train_size", "archs=[metamorph]", "seeds=[1]", "env=incline", "env.self_collision=false",
                        "dry_run=true", "--", "preset=smoke", "total_steps=512"]) == 0
     lines = capsys.readouterr().out.strip().splitlines()
-    assert len(lines) == 4 and all("env=incline env.self_collision=True arch=metamorph seed=1" in ln
+    assert len(lines) == 4 and all("env=incline env.self_collision=False arch=metamorph seed=1" in ln
                                    and ln.endswith("preset=smoke total_steps=512   # then evaluate ['train', 'test']")
                                    for ln in lines)
     assert study.main(["no_such_study"]) == 2 and "no study 'no_such_study'" in capsys.readouterr().err
