@@ -2,7 +2,7 @@
 
 Trains R-MoMo on shipped generated robots, evaluates it zero-shot on generated robots it has never seen, and writes
 a report (learning curve, zero-shot returns) and, where OpenGL exists, a video. On a CPU it runs `preset=demo`
-(4 robots, a small network, 100k env steps: about 5 minutes of training on 2 cores); with an accelerator it runs the
+(4 robots, a small network, 81,920 env steps: about 5 minutes of training on 2 cores); with an accelerator it runs the
 full-size R-MoMo on all 100 gen/train robots for 2 M steps. Extra `key=value` arguments override the training config.
 """
 from __future__ import annotations
