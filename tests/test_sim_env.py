@@ -179,7 +179,6 @@ def test_proprio_and_context_match_numpy_reference(bundle):
     if env.task.name != "ft":
         pytest.skip("checked on ft (the robot features do not depend on the task)")
     observe = jax.jit(env.observe)
-    tab = jax.tree_util.tree_map(np.asarray, env.tables)
     pol = jax.tree_util.tree_map(np.asarray, env.robots)
     rng = np.random.default_rng(0)
     for r, m in enumerate(env.morphologies):
@@ -198,12 +197,7 @@ def test_proprio_and_context_match_numpy_reference(bundle):
             d.qpos[:], d.qvel[:] = q, v
             mujoco.mj_forward(ma, d)
             want = ref.proprio(ma, d)
-            qp = np.asarray(env.sm.mj_models[r].qpos0).copy()
-            qp[:7] = q[:7]
-            qp[tab.qadr_of_action[r, ent]] = q[7:]
-            vp = np.zeros(env.sm.mj_models[r].nv)
-            vp[:6] = v[:6]
-            vp[tab.vadr_of_action[r, ent]] = v[6:]
+            qp, vp = fidelity.to_padded(env.sm, r, q, v)
             got = np.asarray(observe(r, qp, vp).proprio)
             np.testing.assert_allclose(got, want, rtol=1e-5, atol=2e-5, err_msg=f"{m.name} trial {trial}")
         np.testing.assert_allclose(pol.context[r], ref.context(ma), rtol=1e-5, atol=1e-5)
@@ -220,11 +214,10 @@ def test_observation_after_a_step_matches_mujoco_py_after_mj_step(bundle):
     env, vreset, vstep = bundle
     if env.task.name != "ft":
         pytest.skip("checked on ft")
-    tab = jax.tree_util.tree_map(np.asarray, env.tables)
     pol = jax.tree_util.tree_map(np.asarray, env.robots)
     rng = np.random.default_rng(1)
     st = _reset(bundle, robots=(0, 1, 0))
-    wants = {}
+    wants, actions = [], np.zeros((N, 24))
     for r, m in enumerate(env.morphologies):
         ma = fidelity.alone_model(m, SolverOptions())
         ent = np.nonzero(pol.act_mask[r])[0]
@@ -237,19 +230,11 @@ def test_observation_after_a_step_matches_mujoco_py_after_mj_step(bundle):
         d.qpos[:], d.qvel[:], d.ctrl[:] = q, v, a
         for _ in range(4):
             mujoco.mj_step(ma, d)
-        wants[r] = ref.proprio(ma, d)
-        qp = np.asarray(env.sm.mj_models[r].qpos0).copy()
-        qp[:7] = q[:7]
-        qp[tab.qadr_of_action[r, ent]] = q[7:]
-        vp = np.zeros(env.sm.mj_models[r].nv)
-        vp[:6] = v[:6]
-        vp[tab.vadr_of_action[r, ent]] = v[6:]
-        act = np.zeros(24)
-        act[ent] = a
+        wants.append(ref.proprio(ma, d))
+        qp, vp = fidelity.to_padded(env.sm, r, q, v)
+        actions[r, ent] = a
         st = _set(st, r, qpos=jnp.asarray(qp, jnp.float32), qvel=jnp.asarray(vp, jnp.float32))
-        wants[r, "act"] = act
-    actions = jnp.asarray(np.stack([wants[0, "act"], wants[1, "act"], np.zeros(24)]), jnp.float32)
-    st = vstep(st, actions, _sampler(env))
+    st = vstep(st, jnp.asarray(actions, jnp.float32), _sampler(env))
     for r in range(2):
         got = np.asarray(st.obs.proprio[r])
         want = wants[r]

@@ -33,7 +33,7 @@ from mujoco import mjx
 from ..unimal.mjcf import to_mjcf
 from ..unimal.morphology import MAX_NODES, Morphology
 from . import contact
-from .model import INERT_MARGIN, build_stacked_model, compile_padded
+from .model import INERT_MARGIN, build_stacked_model, compile_padded, inert_geoms
 from .padding import SolverOptions, WorldSpec
 from .supertree import SharedTree
 from .terrain import Plane
@@ -78,11 +78,22 @@ def padded_c_models(sm, floor: str = METAMORPH_FLOOR) -> list[mujoco.MjModel]:
     stacked model's options (self-collision pair cut included) and its inert geoms never in contact."""
     out = compile_padded(sm.robots, sm.tree, WorldSpec(geoms=floor), sm.options)
     for r, mm in enumerate(out):
-        used = {0} | set(sm.tree.slot_of[r])
-        for s in range(sm.tree.num_slots):
-            if s not in used:
-                mm.geom_margin[mm.body_geomadr[s + 1]] = INERT_MARGIN
+        mm.geom_margin[inert_geoms(sm.tree, r, mm)] = INERT_MARGIN
     return out
+
+
+def to_padded(sm, robot: int, qpos, qvel) -> tuple[np.ndarray, np.ndarray]:
+    """A state of robot `robot` alone (its own qpos / qvel layout) in the padded layout of the stacked model `sm`:
+    free joint as it is, real joints at their padded addresses, locked and inert joints at qpos0 / 0."""
+    entries = np.nonzero(np.asarray(sm.policy.act_mask[robot]))[0]   # token-major = the alone robot's joint order
+    mm = sm.mj_models[robot]
+    qp = np.asarray(mm.qpos0, np.float64).copy()
+    qp[:7] = qpos[:7]
+    qp[np.asarray(sm.tables.qadr_of_action[robot])[entries]] = qpos[7:]
+    vp = np.zeros(mm.nv)
+    vp[:6] = qvel[:6]
+    vp[np.asarray(sm.tables.vadr_of_action[robot])[entries]] = qvel[6:]
+    return qp, vp
 
 
 def _run_c(mm: mujoco.MjModel, qpos, qvel, ctrls, substeps: int, bodies) -> np.ndarray:
@@ -136,13 +147,8 @@ def compare(robots: Sequence[Morphology], options: SolverOptions = SolverOptions
     act24 = np.zeros((R, steps, 2 * MAX_NODES))
     bodies = np.zeros((R, MAX_NODES), np.int32)
     for r, m in enumerate(robots):
-        q, v = starts[r]
+        qpos[r], qvel[r] = to_padded(sm, r, *starts[r])
         entries = np.nonzero(pol.act_mask[r])[0]          # token-major = the alone robot's actuator order
-        qpos[r] = sm.mj_models[r].qpos0
-        qpos[r, :7] = q[:7]
-        qpos[r, tab.qadr_of_action[r, entries]] = q[7:]
-        qvel[r, :6] = v[:6]
-        qvel[r, tab.vadr_of_action[r, entries]] = v[6:]
         act24[r][:, entries] = actions[r]
         bodies[r] = tab.body_of_token[r]
 
@@ -160,12 +166,11 @@ def compare(robots: Sequence[Morphology], options: SolverOptions = SolverOptions
         _, xs = jax.lax.scan(control, d, a24)
         return xs
 
-    with contact.floor(floor_contacts):
-        f = jax.jit(jax.vmap(run), compiler_options=compiler_options).lower(
-            jnp.arange(R), jnp.asarray(qpos, jnp.float32), jnp.asarray(qvel, jnp.float32),
-            jnp.asarray(act24, jnp.float32), jnp.asarray(tab.ctrl_src)).compile()
-    xs = np.asarray(f(jnp.arange(R), jnp.asarray(qpos, jnp.float32), jnp.asarray(qvel, jnp.float32),
-                      jnp.asarray(act24, jnp.float32), jnp.asarray(tab.ctrl_src)))
+    args = (jnp.arange(R), jnp.asarray(qpos, jnp.float32), jnp.asarray(qvel, jnp.float32),
+            jnp.asarray(act24, jnp.float32), jnp.asarray(tab.ctrl_src))
+    with contact.floor(floor_contacts):          # the floor rule is chosen while tracing
+        f = jax.jit(jax.vmap(run), compiler_options=compiler_options).lower(*args).compile()
+    xs = np.asarray(f(*args))
     padded_c = padded_c_models(sm, c_floor)
     out = []
     for r, m in enumerate(robots):

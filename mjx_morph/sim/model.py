@@ -195,20 +195,24 @@ def build_stacked_model(robots: Sequence[Morphology], world: WorldSpec = WorldSp
     mxs = [mx.replace(_impl=mx._impl.replace(geom_rbound_hfield=rb)) for mx in mxs]
     # inert geoms: never active (margin only decides activation in MJX; collision functions ignore it), and never
     # among the closest pairs of the broad phase (MJX reads geom_rbound only there)
-    for r, (m, mx) in enumerate(zip(robots, mxs)):
-        used = {0} | set(tree.slot_of[r])
+    for r, mx in enumerate(mxs):
+        inert = inert_geoms(tree, r, mjm[r])
         margin = np.asarray(mx.geom_margin).copy()
         rbound = np.asarray(mx.geom_rbound).copy()
-        for s in range(tree.num_slots):
-            if s not in used:
-                margin[mjm[r].body_geomadr[s + 1]] = INERT_MARGIN
-                rbound[mjm[r].body_geomadr[s + 1]] = INERT_MARGIN
+        margin[inert] = INERT_MARGIN
+        rbound[inert] = INERT_MARGIN
         mxs[r] = mx.replace(geom_margin=margin, geom_rbound=rbound)
     model, axes = _stack(mxs)
     policy, tables = _robot_constants(robots, tree, mjm)
     summary = _self_pair_summary(robots, tree, options, mjm[0], search)
     return StackedModel(robots=robots, tree=tree, model=model, axes=axes, policy=policy, tables=tables,
                         mj_models=tuple(mjm), world=world, options=options, self_contact=summary)
+
+
+def inert_geoms(tree: SharedTree, robot: int, mm: mujoco.MjModel) -> list[int]:
+    """Geom ids of the slots robot `robot` of the tree's set does not use (its inert geoms)."""
+    used = {0} | set(tree.slot_of[robot])
+    return [int(mm.body_geomadr[s + 1]) for s in range(tree.num_slots) if s not in used]
 
 
 def _with_self_pairs(robots, tree: SharedTree, options: SolverOptions, budget: bool = False):
