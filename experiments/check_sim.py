@@ -16,6 +16,7 @@ import dataclasses
 import sys
 import time
 
+import jax
 from omegaconf import MISSING
 
 from mjx_morph.run import register
@@ -43,6 +44,7 @@ class CheckSimConfig:
     tolerance: float = fidelity.TOLERANCE    # m; robots over it make the exit status 1
     seed: int = 0
     floor_contacts: str = "box"              # box: MetaMorph's floor (MuJoCo C box, its rule in MJX); plane: a plane
+    matmul_precision: str = _ENV.matmul_precision   # MJX's matmul precision: highest | default (TF32 on GPUs)
     mutated: int = 0                         # > 0: check this many robots made from the set by DERL's mutation
                                              # operators (one random operator each) instead of the set itself
 
@@ -72,9 +74,10 @@ def check(a: CheckSimConfig) -> None:
         print(f"# comparing {len(rs)} robots with MuJoCo C (solver iterations {it}, line search {ls}; compiling "
               "the stacked model takes a while)...", flush=True)
         res = fidelity.compare(rs.robots, opts, steps=a.steps, seed=a.seed, tree=tree,
-                                  floor_contacts=a.floor_contacts)
+                                  floor_contacts=a.floor_contacts, matmul_precision=a.matmul_precision)
         print(f"# {rs.name}: {len(res)} robots, solver iterations {it}, line search {ls}, "
-              f"self-collision {'on' if a.self_collision else 'off'}, floor {a.floor_contacts}, {a.steps} control steps "
+              f"self-collision {'on' if a.self_collision else 'off'}, floor {a.floor_contacts}, {a.steps} control steps, "
+              f"matmul precision {a.matmul_precision} on {jax.devices()[0].platform} "
               f"({time.time() - t0:.0f} s)")
         print(f"{'robot':40s} {'error':>9s} {'padding':>9s} {'mjx':>9s} {'sensitiv.':>9s}   (m; error = padded MJX vs "
               "alone in MuJoCo C, padding = padded vs alone both in MuJoCo C, mjx = padded MJX vs padded MuJoCo C, "

@@ -25,7 +25,7 @@ def env():
 
 @pytest.mark.parametrize("arch", ARCHS)
 def test_first_minibatch_ratio_one_and_windows_reproduce_rollout(env, arch):
-    model = make_model(arch, hfield=False, decoder_dims=[], **TINY)
+    model = make_model(arch, hfield=False, decoder_dims=[], precision="fp32", **TINY)   # the original arithmetic
     trainer = Trainer(env, model, CFG, TOTAL_STEPS, fast_compile=True)
     ts = trainer.init(jax.random.PRNGKey(0))
     for it in range(2):  # the second rollout's first windows burn in on the first rollout's tail

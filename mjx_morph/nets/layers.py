@@ -10,18 +10,21 @@
   the packed 3D x D matrix, zero bias) and an output projection (default Linear weight, zero bias), so its
   count is 4 D^2 + 4 D (66,048 for D = 128), equal to Flax's MHA.
 
-Everything here is float32 and carries no dropout (MetaMorph* and ModuMorph run with dropout 0).
+Parameters are float32; `dtype` (None: float32, as the original code) is the compute dtype: each layer casts its
+parameters and its input to it where it uses them (precision.py says what stays float32). No dropout (MetaMorph* and
+ModuMorph run with dropout 0).
 """
 from __future__ import annotations
 
 import math
-from typing import Callable, Sequence
+from typing import Any, Callable, Sequence
 
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
 Initializer = Callable[..., jax.Array]
+Dtype = Any
 
 LN_EPS = 1e-5  # PyTorch's LayerNorm default (Flax's is 1e-6)
 
@@ -36,11 +39,17 @@ def uniform(bound: float) -> Initializer:
 zeros = nn.initializers.zeros
 
 
+def cast(dtype: Dtype, *xs: jax.Array):
+    """The arrays in the compute dtype (unchanged when it is None)."""
+    return xs if dtype is None else tuple(jnp.asarray(x, dtype) for x in xs)
+
+
 class TorchLinear(nn.Module):
     """`nn.Linear` with PyTorch's default initialisation unless `kernel_init` / `bias_init` are given."""
     features: int
     kernel_init: Initializer | None = None
     bias_init: Initializer | None = None
+    dtype: Dtype = None
 
     @nn.compact
     def __call__(self, x: jax.Array) -> jax.Array:
@@ -48,6 +57,7 @@ class TorchLinear(nn.Module):
         default = uniform(1.0 / math.sqrt(fan_in))
         kernel = self.param("kernel", self.kernel_init or default, (fan_in, self.features))
         bias = self.param("bias", self.bias_init or default, (self.features,))
+        x, kernel, bias = cast(self.dtype, x, kernel, bias)
         return x @ kernel + bias
 
 
@@ -60,6 +70,7 @@ class MLP(nn.Module):
     first_kernel_init: Initializer | None = None
     last_kernel_init: Initializer | None = None
     last_bias_init: Initializer | None = None
+    dtype: Dtype = None
 
     @nn.compact
     def __call__(self, x: jax.Array) -> jax.Array:
@@ -70,14 +81,15 @@ class MLP(nn.Module):
             b_init = self.last_bias_init if last else None
             if i == 0 and self.first_kernel_init is not None:
                 k_init = self.first_kernel_init
-            x = TorchLinear(f, kernel_init=k_init, bias_init=b_init, name=f"layers_{i}")(x)
+            x = TorchLinear(f, kernel_init=k_init, bias_init=b_init, dtype=self.dtype, name=f"layers_{i}")(x)
             if not last or self.final_relu:
                 x = nn.relu(x)
         return x
 
 
-def layer_norm(name: str | None = None) -> nn.LayerNorm:
-    return nn.LayerNorm(epsilon=LN_EPS, name=name)
+def layer_norm(name: str | None = None, dtype: Dtype = None) -> nn.LayerNorm:
+    """PyTorch's epsilon; statistics in float32 whatever `dtype` (the output's)."""
+    return nn.LayerNorm(epsilon=LN_EPS, name=name, dtype=dtype)
 
 
 def _split_heads(x: jax.Array, num_heads: int) -> jax.Array:
@@ -96,10 +108,11 @@ def attention_probs(q: jax.Array, k: jax.Array, key_mask: jax.Array, num_heads: 
     """Softmax attention probabilities [..., H, Tq, Tk]; `key_mask` [..., Tk] is True for real keys.
 
     Padded keys get probability exactly 0 (exp underflows) as long as one key is real (the torso always
-    is); a fully masked row gets uniform probabilities instead of NaNs."""
+    is); a fully masked row gets uniform probabilities instead of NaNs. Logits and probabilities are float32
+    whatever the dtype of q and k."""
     qh = _split_heads(q, num_heads)
     kh = _split_heads(k, num_heads)
-    logits = jnp.einsum("...hqd,...hkd->...hqk", qh, kh) / math.sqrt(qh.shape[-1])
+    logits = jnp.einsum("...hqd,...hkd->...hqk", qh, kh, preferred_element_type=jnp.float32) / math.sqrt(qh.shape[-1])
     logits = jnp.where(key_mask[..., None, None, :], logits, jnp.finfo(logits.dtype).min)
     return jax.nn.softmax(logits, axis=-1)
 
@@ -114,6 +127,7 @@ class EncoderLayer(nn.Module):
     num_heads: int
     ffn_dim: int
     fixed: bool = False
+    dtype: Dtype = None
 
     def setup(self):
         d = self.d_model
@@ -123,17 +137,19 @@ class EncoderLayer(nn.Module):
         # bound on our (D, 3D) layout.
         self.in_proj_kernel = self.param("in_proj_kernel", uniform(math.sqrt(6.0 / (4 * d))), (d, 3 * d))
         self.in_proj_bias = self.param("in_proj_bias", zeros, (3 * d,))
-        self.out_proj = TorchLinear(d, bias_init=zeros)
-        self.norm1 = layer_norm()
-        self.norm2 = layer_norm()
-        self.linear1 = TorchLinear(self.ffn_dim)
-        self.linear2 = TorchLinear(d)
+        self.out_proj = TorchLinear(d, bias_init=zeros, dtype=self.dtype)
+        self.norm1 = layer_norm(dtype=self.dtype)
+        self.norm2 = layer_norm(dtype=self.dtype)
+        self.linear1 = TorchLinear(self.ffn_dim, dtype=self.dtype)
+        self.linear2 = TorchLinear(d, dtype=self.dtype)
         if self.fixed:
-            self.norm_context = layer_norm()
+            self.norm_context = layer_norm(dtype=self.dtype)
 
     def _proj(self, x: jax.Array, which: int) -> jax.Array:
         d = self.d_model
-        return x @ self.in_proj_kernel[:, which * d:(which + 1) * d] + self.in_proj_bias[which * d:(which + 1) * d]
+        x, w, b = cast(self.dtype, x, self.in_proj_kernel[:, which * d:(which + 1) * d],
+                       self.in_proj_bias[which * d:(which + 1) * d])
+        return x @ w + b
 
     def fixed_probs(self, c_fa: jax.Array, key_mask: jax.Array) -> jax.Array:
         """Fixed-attention probabilities [..., H, 12, 12] from the context encoding c_fa [..., 12, D]."""
@@ -147,10 +163,10 @@ class EncoderLayer(nn.Module):
             probs = attn
             v = self._proj(y, 2)
         else:
-            qkv = y @ self.in_proj_kernel + self.in_proj_bias
-            q, k, v = jnp.split(qkv, 3, axis=-1)
+            y, w, b = cast(self.dtype, y, self.in_proj_kernel, self.in_proj_bias)
+            q, k, v = jnp.split(y @ w + b, 3, axis=-1)
             probs = attention_probs(q, k, attn, self.num_heads)
-        out = jnp.einsum("...hqk,...hkd->...hqd", probs, _split_heads(v, self.num_heads))
+        out = jnp.einsum("...hqk,...hkd->...hqd", probs.astype(v.dtype), _split_heads(v, self.num_heads))
         x = x + self.out_proj(_merge_heads(out))
         y = self.norm2(x)
         return x + self.linear2(nn.relu(self.linear1(y)))

@@ -20,6 +20,9 @@ GRU (PyTorch `nn.GRU`, gate order r, z, n):
 redundant; b_hn sits inside the reset gate and is not.
 
 Initialisation as PyTorch: every weight and bias U(-1/sqrt(H), 1/sqrt(H)).
+
+`dtype` (precision.py): the two matmuls run in it; the gate non-linearities and the state stay float32, so the
+state carried over hundreds of steps is not rounded to bfloat16 at every step.
 """
 from __future__ import annotations
 
@@ -29,12 +32,13 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
-from .layers import uniform
+from .layers import Dtype, cast, uniform
 
 
 class LSTMCell(nn.Module):
     in_features: int
     hidden: int
+    dtype: Dtype = None
 
     num_gates = 4
 
@@ -47,10 +51,12 @@ class LSTMCell(nn.Module):
         self.b_hh = self.param("b_hh", init, (4 * h,))
 
     def input_proj(self, x: jax.Array) -> jax.Array:
-        return x @ self.w_ih + (self.b_ih + self.b_hh)
+        x, w, b = cast(self.dtype, x, self.w_ih, self.b_ih + self.b_hh)
+        return x @ w + b
 
     def recur(self, state: dict, xg: jax.Array) -> tuple[dict, jax.Array]:
-        gates = xg + state["h"] @ self.w_hh
+        h, w = cast(self.dtype, state["h"], self.w_hh)
+        gates = (xg + h @ w).astype(jnp.float32)
         i, f, g, o = jnp.split(gates, 4, axis=-1)
         c = jax.nn.sigmoid(f) * state["c"] + jax.nn.sigmoid(i) * jnp.tanh(g)
         h = jax.nn.sigmoid(o) * jnp.tanh(c)
@@ -60,6 +66,7 @@ class LSTMCell(nn.Module):
 class GRUCell(nn.Module):
     in_features: int
     hidden: int
+    dtype: Dtype = None
 
     num_gates = 3
 
@@ -72,11 +79,13 @@ class GRUCell(nn.Module):
         self.b_hh = self.param("b_hh", init, (3 * h,))
 
     def input_proj(self, x: jax.Array) -> jax.Array:
-        return x @ self.w_ih + self.b_ih
+        x, w, b = cast(self.dtype, x, self.w_ih, self.b_ih)
+        return x @ w + b
 
     def recur(self, state: dict, xg: jax.Array) -> tuple[dict, jax.Array]:
-        hg = state["h"] @ self.w_hh + self.b_hh
-        xr, xz, xn = jnp.split(xg, 3, axis=-1)
+        h, w, b = cast(self.dtype, state["h"], self.w_hh, self.b_hh)
+        hg = (h @ w + b).astype(jnp.float32)
+        xr, xz, xn = jnp.split(xg.astype(jnp.float32), 3, axis=-1)
         hr, hz, hn = jnp.split(hg, 3, axis=-1)
         r = jax.nn.sigmoid(xr + hr)
         z = jax.nn.sigmoid(xz + hz)

@@ -39,6 +39,7 @@ from __future__ import annotations
 import dataclasses
 from typing import Any, List, Optional, Sequence
 
+from . import precision as _precision
 from .model import Model
 from .network import EMBED_INPUT_DIMS, NetConfig
 
@@ -57,7 +58,7 @@ _STRUCTURE: dict[str, dict[str, Any]] = {
 }
 
 _SIZES = ("d_model", "num_layers", "num_heads", "ffn_dim", "plus_hidden", "hfield_size", "hfield_dims")
-_MODEL_FLAGS = ("action_std", "clip_prev_action", "clone_layer_init")
+_MODEL_FLAGS = ("action_std", "clip_prev_action", "clone_layer_init", "scan_unroll")
 
 
 @dataclasses.dataclass
@@ -81,6 +82,7 @@ class ModelOptions:
     action_std: Optional[float] = None
     clip_prev_action: Optional[bool] = None
     clone_layer_init: Optional[bool] = None
+    scan_unroll: Optional[int] = None       # recurrent cell: time steps per scan iteration (speed only, same result)
 
     def overrides(self) -> dict[str, Any]:
         """The keys that are set, as `make_model` keyword arguments."""
@@ -101,11 +103,13 @@ def _allowed(arch: str) -> set[str]:
     return keys
 
 
-def make_model(arch: str, *, hfield: bool, decoder_dims: Sequence[int] = (), **overrides: Any) -> Model:
+def make_model(arch: str, *, hfield: bool, decoder_dims: Sequence[int] = (), precision: str = _precision.DEFAULT,
+               **overrides: Any) -> Model:
     """Build an architecture of `ARCHS`.
 
     hfield: the task has the 1410-value height map (csr, obstacle); decoder_dims: the task's hidden decoder
-    layers ([] for ft/incline, [64] csr, [64, 64] obstacle). `overrides`: sizes (d_model, num_layers,
+    layers ([] for ft/incline, [64] csr, [64, 64] obstacle); precision: fp32 | tf32 | bf16 (precision.py).
+    `overrides`: sizes (d_model, num_layers,
     num_heads, ffn_dim, hidden (= d_model), plus_hidden, hfield_dims, hfield_size) and flags (context_mlp,
     cell_residual, scale_after_cell, embed_input, embed_scale, action_std, clip_prev_action,
     clone_layer_init), each only where it applies; anything else is an error."""
@@ -125,5 +129,6 @@ def make_model(arch: str, *, hfield: bool, decoder_dims: Sequence[int] = (), **o
         raise ValueError(f"{arch}: embed_input must be one of {sorted(EMBED_INPUT_DIMS)}")
     if "hfield_dims" in ov:
         ov["hfield_dims"] = tuple(int(x) for x in ov["hfield_dims"])
-    net = NetConfig(**{**_STRUCTURE[arch], **ov}, hfield=bool(hfield), decoder_dims=tuple(int(x) for x in decoder_dims))
+    net = NetConfig(**{**_STRUCTURE[arch], **ov}, hfield=bool(hfield), decoder_dims=tuple(int(x) for x in decoder_dims),
+                    precision=_precision.check(precision))
     return Model(arch, net, **model_kw)

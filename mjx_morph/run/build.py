@@ -50,7 +50,8 @@ def make_env_for(cfg: RunConfig, robots: Sequence[Morphology], **env_overrides) 
 def make_model_for(cfg: RunConfig) -> Model:
     """The run's architecture with its overrides, shaped for the task (height map, decoder layers)."""
     task = get_task(cfg.env.task)
-    return make_model(cfg.arch, hfield=task.hfield_obs, decoder_dims=task.decoder_dims, **cfg.model.overrides())
+    return make_model(cfg.arch, hfield=task.hfield_obs, decoder_dims=task.decoder_dims, precision=cfg.precision,
+                      **cfg.model.overrides())
 
 
 def build(cfg: RunConfig) -> Experiment:

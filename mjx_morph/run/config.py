@@ -30,6 +30,8 @@ from hydra.errors import HydraException
 from omegaconf import OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
+from ..nets.precision import DEFAULT as DEFAULT_PRECISION
+from ..nets.precision import check as check_precision
 from ..nets.zoo import ModelOptions
 from ..ppo.config import PPOConfig
 from ..sim.env import EnvConfig
@@ -46,6 +48,8 @@ class RunConfig:
     env: EnvConfig = dataclasses.field(default_factory=EnvConfig)
     arch: str = "rmomo"                 # one of mjx_morph.nets.ARCHS
     model: ModelOptions = dataclasses.field(default_factory=ModelOptions)
+    precision: str = DEFAULT_PRECISION  # the networks' arithmetic: fp32 | tf32 | bf16 (mjx_morph.nets.precision;
+                                        # the physics is always float32 at the highest matmul precision)
     ppo: PPOConfig = dataclasses.field(default_factory=PPOConfig)
     seed: int = 0
     robots: Optional[str] = None        # robot set or path; None: unimal100/train when the original robots exist,
@@ -82,6 +86,7 @@ class RunConfig:
                 raise ValueError(f"{key}={v}: expected a positive number" + (" or null" if key != "total_steps"
                                                                              and key != "checkpoint_every" else ""))
         self.ppo.check_values()
+        check_precision(self.precision)
 
 
 #: keys that shape the train state: a resume must agree on them (dotted keys or prefixes)

@@ -34,7 +34,8 @@ robot stayed within 1e-3 m of MuJoCo C over 0.5 s on a plane (`experiments.check
 robots drift 1.5-2.1e-3 m after a contact event; on MetaMorph's box floor a few robots exceed it at any setting,
 docs/benchmarks.md); self-collision (on, as MetaMorph, with the candidate
 pairs cut to those some robot of the set can make touch, `selfcontact.py`); physics in
-float32 (JAX's default; MetaMorph float64); the ft / incline floor is a plane whose capsule contacts are those
+float32 with float32 matmuls (`matmul_precision="highest"`: JAX's default would round matmul inputs to TF32 on
+recent NVIDIA GPUs; MetaMorph float64); the ft / incline floor is a plane whose capsule contacts are those
 MuJoCo C makes against MetaMorph's box floor (`floor_contacts="box"`, `contact.py`). Contacts otherwise as
 MetaMorph: condim 3, friction 0.7, pyramidal cone, Newton solver, Euler
 integrator, parent-child filtering, no exclude pairs.
@@ -42,6 +43,7 @@ integrator, parent-child filtering, no exclude pairs.
 from __future__ import annotations
 
 import dataclasses
+import functools
 from typing import Any, List, NamedTuple, Optional, Sequence
 
 import jax
@@ -79,6 +81,8 @@ class EnvConfig:
                                     # floor), "plane" (MuJoCo C's plane) or "mjx" (MJX's own); contact.py
     context_features: Optional[List[str]] = None   # None: all context features; else only these groups of
                                                    # mjx_morph.layout.CONTEXT_GROUPS, the others zeroed
+    matmul_precision: str = "highest"   # JAX matmul precision of the physics: "highest" (float32, as MuJoCo's
+                                        # arithmetic needs) or "default" (JAX's: TF32 on recent NVIDIA GPUs)
 
 
 class Physics(NamedTuple):
@@ -126,6 +130,15 @@ def _no_stats() -> EpisodeStats:
                         unstable=f)
 
 
+def _physics_precision(method):
+    """Trace the method under the physics' matmul precision (`EnvConfig.matmul_precision`)."""
+    @functools.wraps(method)
+    def wrapped(self, *args, **kwargs):
+        with jax.default_matmul_precision(self.config.matmul_precision):
+            return method(self, *args, **kwargs)
+    return wrapped
+
+
 class UnimalEnv:
     """The task: the stacked model, its terrain and the static configuration; all methods are pure and jit-able.
     `step` returns the transition without resetting (see `wrappers.AutoReset`)."""
@@ -134,6 +147,8 @@ class UnimalEnv:
         self.config = config
         self.task: Task = get_task(config.task)
         contact.check_rule(config.floor_contacts)
+        if config.matmul_precision not in ("highest", "default"):
+            raise ValueError(f"env.matmul_precision={config.matmul_precision!r}: expected highest or default")
         self.morphologies = tuple(robots)
         self.terrain: terrain.Terrain = terrain.for_task(self.task, self.morphologies)
         opts = SolverOptions(iterations=config.iterations, ls_iterations=config.ls_iterations,
@@ -187,6 +202,7 @@ class UnimalEnv:
         return self._obs(d, qpos, qvel, tab, pol, robot, ts, prev_action, yaw_aligned=True), d.xpos[1, 0]
 
     # ---- API ---------------------------------------------------------------------------------------------------
+    @_physics_precision
     def reset(self, key: jax.Array, robot: jax.Array) -> EnvState:
         robot = jnp.asarray(robot, jnp.int32)
         kq, kv, kt, knext = jax.random.split(key, 4)
@@ -203,6 +219,7 @@ class UnimalEnv:
                         obs=obs, reward=jnp.float32(0.0), done=jnp.asarray(False), truncated=jnp.asarray(False),
                         ended=_no_stats(), key=knext)
 
+    @_physics_precision
     def observe(self, robot: jax.Array, qpos: jax.Array, qvel: jax.Array, terrain_state=None,
                 prev_action: jax.Array | None = None) -> Obs:
         """The observation of an arbitrary state of robot `robot` (padded qpos/qvel layout), with kinematics
@@ -212,6 +229,7 @@ class UnimalEnv:
         pa = jnp.zeros((NUM_ACTIONS,), jnp.float32) if prev_action is None else prev_action
         return self._observe(robot, jnp.asarray(qpos, jnp.float32), jnp.asarray(qvel, jnp.float32), ts, pa)[0]
 
+    @_physics_precision
     def step(self, state: EnvState, action: jax.Array) -> EnvState:
         """One control step; where it ends the episode (`done`) the returned state is the terminal one (zeroed if
         unstable) and `ended` holds the episode's statistics. The key is left as it is."""

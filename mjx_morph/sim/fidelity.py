@@ -118,9 +118,11 @@ def summary(values) -> dict:
 
 def compare(robots: Sequence[Morphology], options: SolverOptions = SolverOptions(), steps: int = 25,
             substeps: int = 4, seed: int = 0, tree: SharedTree | None = None,
-            compiler_options: dict | None = None, floor_contacts: str = "box") -> list[Result]:
+            compiler_options: dict | None = None, floor_contacts: str = "box",
+            matmul_precision: str = "highest") -> list[Result]:
     """Compare every robot (see the module docstring). `floor_contacts`: "box" (MetaMorph's box floor in MuJoCo C,
-    its rule in MJX) or "plane" (a plane in MuJoCo C, MuJoCo C's plane rule in MJX)."""
+    its rule in MJX) or "plane" (a plane in MuJoCo C, MuJoCo C's plane rule in MJX); `matmul_precision`: MJX's
+    (the env's `EnvConfig.matmul_precision`; it matters on GPUs with TF32)."""
     robots = tuple(robots)
     if floor_contacts not in ("box", "plane"):
         raise ValueError(f"floor_contacts={floor_contacts!r}: expected 'box' or 'plane'")
@@ -168,7 +170,8 @@ def compare(robots: Sequence[Morphology], options: SolverOptions = SolverOptions
 
     args = (jnp.arange(R), jnp.asarray(qpos, jnp.float32), jnp.asarray(qvel, jnp.float32),
             jnp.asarray(act24, jnp.float32), jnp.asarray(tab.ctrl_src))
-    with contact.floor(floor_contacts):          # the floor rule is chosen while tracing
+    # the floor rule and the matmul precision are chosen while tracing
+    with contact.floor(floor_contacts), jax.default_matmul_precision(matmul_precision):
         f = jax.jit(jax.vmap(run), compiler_options=compiler_options).lower(*args).compile()
     xs = np.asarray(f(*args))
     padded_c = padded_c_models(sm, c_floor)
