@@ -1,0 +1,77 @@
+"""Matmul FLOPs of a JAX function, counted on its jaxpr, and the peak rates model FLOP utilisation is measured against.
+
+    flops = matmul_flops(jax.make_jaxpr(fn)(*args))
+
+Counted: every `dot_general` (2 x batch x M x N x K), convolutions are not expected here. Loops: a `scan` counts its
+body `length` times; a `cond` counts its dearest branch (the PPO update's "run this minibatch" branch, so the count is
+the worst case with every epoch run); a `while` counts its body once (its trip count is not static; the learner has
+none, the MJX solver does, which is why the physics is not counted). Element-wise work (activations, LayerNorm,
+softmax, Adam) is not counted: the figure is the matmul work, the part the matrix units can speed up.
+
+Why not XLA's cost analysis of the compiled program: it counts a while loop's body once, and the update is a loop of
+minibatches around loops over time.
+"""
+from __future__ import annotations
+
+import math
+from typing import Any, Optional
+
+import jax
+from jax.extend import core as jcore
+
+#: dense peak FLOP/s per matmul precision of the GPUs we run on (NVIDIA data sheets, SXM parts, without sparsity)
+PEAK_FLOPS = {
+    "H100": {"fp32": 67e12, "tf32": 494.7e12, "bf16": 989.4e12},
+    "H200": {"fp32": 67e12, "tf32": 494.7e12, "bf16": 989.4e12},
+}
+
+
+def peak_flops(device_kind: str, precision: str) -> Optional[float]:
+    """The device's dense peak for the precision, None when the device is not in the table (a CPU, say)."""
+    for name, peaks in PEAK_FLOPS.items():
+        if name in device_kind:
+            return peaks[precision]
+    return None
+
+
+def _dot_flops(eqn) -> int:
+    (lc, rc), (lb, rb) = eqn.params["dimension_numbers"]
+    lhs, rhs = (v.aval.shape for v in eqn.invars)
+    batch = math.prod(lhs[i] for i in lb)
+    contract = math.prod(lhs[i] for i in lc)
+    m = math.prod(d for i, d in enumerate(lhs) if i not in lc and i not in lb)
+    n = math.prod(d for i, d in enumerate(rhs) if i not in rc and i not in rb)
+    return 2 * batch * m * n * contract
+
+
+def _sub_jaxprs(eqn) -> list[Any]:
+    out = []
+    for v in eqn.params.values():
+        for x in (v if isinstance(v, (tuple, list)) else (v,)):
+            if isinstance(x, jcore.ClosedJaxpr):
+                out.append(x.jaxpr)
+            elif isinstance(x, jcore.Jaxpr):
+                out.append(x)
+    return out
+
+
+def matmul_flops(jaxpr: Any) -> int:
+    """Matmul FLOPs of a (closed) jaxpr, loops and branches accounted for as the module docstring says."""
+    jaxpr = getattr(jaxpr, "jaxpr", jaxpr)
+    total = 0
+    for eqn in jaxpr.eqns:
+        name = eqn.primitive.name
+        if name == "dot_general":
+            total += _dot_flops(eqn)
+        elif name == "cond":
+            total += max(matmul_flops(b) for b in eqn.params["branches"])
+        elif name == "scan":
+            total += eqn.params["length"] * matmul_flops(eqn.params["jaxpr"])
+        else:
+            total += sum(matmul_flops(j) for j in _sub_jaxprs(eqn))
+    return total
+
+
+def count(fn, *args) -> int:
+    """Matmul FLOPs of one call of `fn(*args)` (traced, not run)."""
+    return matmul_flops(jax.make_jaxpr(fn)(*args))
