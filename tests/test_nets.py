@@ -1,5 +1,6 @@
 """The model zoo (mjx_morph.nets): parameter counts, masks, acting == training, resets, burn-in, caching,
-an independent NumPy reference forward for MetaMorph and ModuMorph, the cells, the distribution and the
+the flags scale_after_cell, cell_residual and context_mlp (acting == training for each value, and what each
+does), an independent NumPy reference forward for MetaMorph and ModuMorph, the cells, the distribution and the
 parameter-count CLI.
 
 Behavioural tests use tiny networks (d_model 16, 2 layers) and one set of shapes (R = B = 4 robots/envs,
@@ -18,7 +19,7 @@ import numpy as np
 import pytest
 
 from mjx_morph.layout import NUM_TOKENS, STATE_FEATURES, Obs, Robots
-from mjx_morph.nets import ARCHS, distribution, make_model
+from mjx_morph.nets import ARCHS, NetConfig, distribution, make_model
 from mjx_morph.nets.recurrent import GRUCell, LSTMCell
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -119,9 +120,10 @@ def fast_jit(f, **kw):
 
 
 @functools.lru_cache(maxsize=None)
-def setup(arch: str, hfield: bool = True):
-    """Tiny model (with height map and a hidden decoder layer when hfield), params, jitted step/sequence."""
-    model = make_model(arch, hfield=hfield, decoder_dims=[8] if hfield else [], **TINY)
+def setup(arch: str, hfield: bool = True, flags: tuple[tuple[str, object], ...] = ()):
+    """Tiny model (with height map and a hidden decoder layer when hfield; `flags`: extra `make_model` options as
+    (key, value) pairs), params, jitted step/sequence."""
+    model = make_model(arch, hfield=hfield, decoder_dims=[8] if hfield else [], **{**TINY, **dict(flags)})
     robots = make_robots(0)
     params = random_params(model, robots)
     step = fast_jit(model.step)
@@ -303,6 +305,171 @@ def test_per_robot_cache_equals_per_sample(arch):
         cache = fast_jit(model.robot_cache)(params, robots)
         mu2, _, _ = seq(params, robots, obs_seq, carry0, resets, burn_in=0, cache=cache)
         assert_close(mu1, mu2)
+
+
+# ---------------------------------------------------------------------------------------------- model flags
+FLAGS = ("scale_after_cell", "cell_residual", "context_mlp")
+FLAG_CASES = [
+    ("rmomo", {"scale_after_cell": False, "cell_residual": False}),
+    ("rmomo", {"scale_after_cell": True}),
+    ("rmomo", {"cell_residual": True}),
+    ("rmomo", {"scale_after_cell": True, "cell_residual": True}),
+    ("grumomo", {"scale_after_cell": True}),
+    ("grumomo", {"cell_residual": True}),
+    ("rmemo", {"scale_after_cell": False, "cell_residual": False, "context_mlp": False}),
+    ("rmemo", {"scale_after_cell": True}),
+    ("rmemo", {"cell_residual": True}),
+    ("rmemo", {"context_mlp": True}),
+    ("rmemo", {"context_mlp": True, "cell_residual": True, "scale_after_cell": True}),
+    ("metamorph", {"context_mlp": True}),
+]
+
+
+def flag_setup(arch: str, flags: dict):
+    """`setup` with the flags that differ from their defaults (so the default values share `setup(arch)`)."""
+    non_default = tuple(sorted((k, v) for k, v in flags.items() if v != getattr(NetConfig, k)))
+    return setup(arch, flags=non_default)
+
+
+def silence_cells(params):
+    """Parameters whose LSTMs output exactly 0: output-gate bias -1e4, so sigmoid(o) underflows to 0."""
+    def silence(cell):
+        h = cell["b_ih"].shape[0] // 4
+        return {**cell, "b_ih": cell["b_ih"].at[3 * h:].set(-1e4)}
+    return {name: {**p, "cell": silence(p["cell"])} for name, p in params.items()}
+
+
+@pytest.mark.parametrize("arch,flags", FLAG_CASES,
+                         ids=[a + "-" + "-".join(f"{k}={v}" for k, v in f.items()) for a, f in FLAG_CASES])
+def test_flags_sequence_with_burn_in_equals_steps(arch, flags):
+    """For every value of the NetConfig flags scale_after_cell, cell_residual and context_mlp: `sequence` with a
+    burn-in (resets inside the burn-in and the window) gives the outputs of the last T - burn_in of T calls of
+    `step` and the same final state; and a flag set away from its default changes the outputs."""
+    model, robots, params, step, seq = flag_setup(arch, flags)
+    assert {k: getattr(model.net, k) for k in flags} == flags
+    burn = 2
+    obs_seq = make_obs(12, (T, B))
+    resets = random_resets(12).at[1].set([False, True, False, False])
+    carry0 = random_carry(model, 12)
+    mu1, v1, c1 = run_steps(step, params, robots, obs_seq, carry0, resets)
+    mu2, v2, c2 = seq(params, robots, obs_seq, carry0, resets, burn_in=burn)
+    assert mu2.shape == (T - burn, B, 24)
+    assert_close(mu1[burn:], mu2)
+    assert_close(v1[burn:], v2)
+    assert_tree_close(c1, c2)
+    if any(flags.values()):
+        _, _, base_params, base_step, _ = setup(arch)
+        if jax.tree.structure(base_params) == jax.tree.structure(params):      # context_mlp adds parameters
+            mu0, _, _ = run_steps(base_step, params, robots, obs_seq, carry0, resets)
+            assert not np.allclose(np.asarray(mu0), np.asarray(mu1), atol=1e-3)
+
+
+@pytest.mark.parametrize("arch", ["rmomo", "rmemo", "grumomo"])
+def test_scale_after_cell_keeps_the_cell_unsaturated_at_init(arch):
+    """At full width (D = 128) and the PyTorch initialisation, on normalised inputs (proprio N(0, 1), previous
+    action in [-1, 1]): with sqrt(D) on the embedding before the cell (scale_after_cell=False, the default) a large
+    fraction of the cell's gate pre-activations at the first step have |x| > 2 (measured: 46% rmomo and grumomo,
+    27% rmemo); with scale_after_cell=True none do (measured max |x| well below 2)."""
+    fractions = {}
+    for flag in (False, True):
+        model = make_model(arch, hfield=False, decoder_dims=[], d_model=128, num_layers=1, ffn_dim=32,
+                           scale_after_cell=flag)
+        robots = make_robots(0)
+        obs = make_obs(13, (32,))._replace(hfield=None)
+        obs = obs._replace(prev_action=jnp.clip(obs.prev_action, -1.0, 1.0))
+        params = model.init(jax.random.key(13), robots, obs)
+        cache = model.robot_cache(params, robots)
+        parts = model._parts(robots, obs, None)
+        node = np.asarray(parts["node_mask"])
+        for name, net in model.nets.items():
+            # from a zero state the gate pre-activations are the input projection alone
+            xg = np.asarray(net.apply({"params": params[name]}, parts, cache[name], method="pre")["xg"])[node]
+            fractions[flag, name] = float(np.mean(np.abs(xg) > 2.0))
+    for name in ("actor", "critic"):
+        assert fractions[False, name] > 0.2, fractions
+        assert fractions[True, name] < 0.005, fractions
+
+
+def test_scale_after_cell_moves_sqrt_d_behind_the_cell():
+    """scale_after_cell=True with input weights W equals scale_after_cell=False with W / sqrt(D), except that the
+    cell's output is multiplied by sqrt(D): with no transformer layers and zero decoder biases (outputs linear in
+    the transformer input) the outputs are sqrt(D) times larger and the states are equal."""
+    kw = dict(hfield=False, decoder_dims=[], d_model=16, num_layers=0)
+    after = make_model("rmemo", scale_after_cell=True, **kw)
+    before = make_model("rmemo", scale_after_cell=False, **kw)
+    robots = make_robots(0)
+    params = random_params(after, robots)
+    params = {name: {**p, "decoder": {"layers_0": {**p["decoder"]["layers_0"],
+                                                    "bias": jnp.zeros_like(p["decoder"]["layers_0"]["bias"])}}}
+              for name, p in params.items()}
+    scaled = {name: {**p, "cell": {**p["cell"], "w_ih": p["cell"]["w_ih"] / 4.0}} for name, p in params.items()}
+    obs = make_obs(14, (B,))._replace(hfield=None)
+    carry = random_carry(after, 14)
+    resets = jnp.zeros(B, bool)
+    mu_a, v_a, c_a = after.step(params, robots, obs, carry, resets)
+    mu_b, v_b, c_b = before.step(scaled, robots, obs, carry, resets)
+    assert_tree_close(c_a, c_b)
+    assert_close(mu_a, 4.0 * mu_b)                                        # sqrt(16)
+    assert_close(v_a, 4.0 * v_b)
+    assert np.abs(np.asarray(mu_b)).max() > 1e-2
+
+
+@pytest.mark.parametrize("scale_after_cell", [False, True])
+def test_cell_residual_adds_the_embedding(scale_after_cell):
+    """With cells that output 0: cell_residual=True gives exactly the feed-forward ModuMorph with R-MoMo's
+    embedding input (the transformer input is the embedding), cell_residual=False outputs that do not depend on
+    the observation at all (the transformer input is the cell output alone)."""
+    flags = {"scale_after_cell": scale_after_cell}
+    model, robots, params, step, _ = flag_setup("rmomo", {**flags, "cell_residual": True})
+    ff, _, ff_params, ff_step, _ = setup("modumorph", flags=(("embed_input", "obs_action"),))
+    _, _, _, step_alone, _ = flag_setup("rmomo", {**flags, "cell_residual": False})
+    silent = silence_cells(params)
+    shared = {name: {k: v for k, v in p.items() if k != "cell"} for name, p in silent.items()}
+    assert jax.tree.structure(shared) == jax.tree.structure(ff_params)
+    obs, other = make_obs(15, (B,)), make_obs(16, (B,))
+    other = other._replace(robot=obs.robot, hfield=obs.hfield)            # only the per-limb inputs differ
+    carry = random_carry(model, 15)
+    resets = jnp.zeros(B, bool)
+    mu, v, c = step(silent, robots, obs, carry, resets)
+    mu_ff, v_ff, _ = ff_step(shared, robots, obs, {}, resets)
+    assert all(np.all(np.asarray(x) == 0.0) for x in jax.tree.leaves({n: s["h"] for n, s in c.items()}))
+    assert_close(mu, mu_ff)
+    assert_close(v, v_ff)
+    mu1, v1, _ = step_alone(silent, robots, obs, carry, resets)
+    mu2, v2, _ = step_alone(silent, robots, other, carry, resets)
+    assert_close(mu1, mu2)
+    assert_close(v1, v2)
+    assert not np.allclose(np.asarray(mu1), np.asarray(mu), atol=1e-3)
+
+
+@pytest.mark.parametrize("arch", ["rmemo", "metamorph"])
+def test_context_mlp_gives_the_context(arch):
+    """rmemo (design A) and metamorph read no context features: their outputs do not change when only the robots'
+    context changes. With context_mlp=True an MLP of the context is added to the transformer input, so they do;
+    for rmemo with cells that output 0, the outputs then depend on the context and not on the observation."""
+    robots = make_robots(0)
+    other_robots = robots._replace(context=make_robots(1).context * robots.node_mask[..., None])
+    obs = make_obs(17, (B,))
+    other = make_obs(18, (B,))._replace(robot=obs.robot, hfield=obs.hfield)
+    model, _, params, step, _ = setup(arch)
+    carry = random_carry(model, 17)
+    resets = jnp.zeros(B, bool)
+    mu1, v1, _ = step(params, robots, obs, carry, resets)
+    mu2, v2, _ = step(params, other_robots, obs, carry, resets)
+    assert_close(mu1, mu2)
+    assert_close(v1, v2)
+    model, _, params, step, _ = flag_setup(arch, {"context_mlp": True})
+    mu1, v1, _ = step(params, robots, obs, carry, resets)
+    mu2, v2, _ = step(params, other_robots, obs, carry, resets)
+    assert not np.allclose(np.asarray(mu1), np.asarray(mu2), atol=1e-3)
+    assert not np.allclose(np.asarray(v1), np.asarray(v2), atol=1e-3)
+    if model.recurrent:
+        silent = silence_cells(params)
+        mu_a, _, _ = step(silent, robots, obs, carry, resets)
+        mu_b, _, _ = step(silent, robots, other, carry, resets)
+        mu_c, _, _ = step(silent, other_robots, obs, carry, resets)
+        assert_close(mu_a, mu_b)
+        assert not np.allclose(np.asarray(mu_a), np.asarray(mu_c), atol=1e-3)
 
 
 def test_flat_terrain_model_runs_without_height_map():

@@ -55,8 +55,9 @@ class PPOConfig:
             raise ValueError(f"ppo.rollout_len={self.rollout_len} must be a multiple of ppo.window={self.window}")
         if self.minibatch_size % self.window:
             raise ValueError(f"ppo.minibatch_size={self.minibatch_size} must be a multiple of ppo.window={self.window}")
-        if self.burn_in > self.rollout_len:
-            raise ValueError(f"ppo.burn_in={self.burn_in} exceeds ppo.rollout_len={self.rollout_len}")
+        if self.burn_in > self.window:
+            raise ValueError(f"ppo.burn_in={self.burn_in} exceeds ppo.window={self.window}: the rollout stores the "
+                             "recurrent state where each window's burn-in starts, which must lie in the window before")
         windows = self.num_envs * self.rollout_len // self.window
         if windows < self.minibatch_size // self.window:
             raise ValueError(f"a rollout has {windows} windows, fewer than one minibatch "

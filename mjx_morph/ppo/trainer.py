@@ -305,7 +305,8 @@ class Trainer:
         grad_fn = jax.value_and_grad(self._loss, has_aux=True)
         zero_info = LossInfo(*([jnp.float32(0.0)] * len(LossInfo._fields)))
 
-        def mb_step(c: SGDCarry, mb_ids):
+        def mb_step(c: SGDCarry, x):
+            mb_ids, step = x
             params, opt, stopped, acc, applied, first_info = c
 
             def run(_):
@@ -321,11 +322,12 @@ class Trainer:
 
             params, opt, stop_now, info, ok = jax.lax.cond(stopped, skip, run, None)
             acc = jax.tree.map(lambda a, x: a + jnp.where(ok, x, 0.0), acc, info)
-            first_info = jax.tree.map(lambda f, x: jnp.where(applied == 0, x, f), first_info, info)
+            # the first minibatch's statistics, applied or not (a rejected one is when wrong stored states show)
+            first_info = jax.tree.map(lambda f, x: jnp.where(step == 0, x, f), first_info, info)
             return SGDCarry(params, opt, stopped | stop_now, acc, applied + ok.astype(jnp.int32), first_info), None
 
         c0 = SGDCarry(ts.params, opt_state, jnp.asarray(False), zero_info, jnp.int32(0), zero_info)
-        (params, opt_state, _, acc, applied, first_info), _ = jax.lax.scan(mb_step, c0, ids)
+        (params, opt_state, _, acc, applied, first_info), _ = jax.lax.scan(mb_step, c0, (ids, jnp.arange(ids.shape[0])))
         n = jnp.maximum(applied, 1).astype(jnp.float32)
         metrics = {f"{k}": v / n for k, v in acc._asdict().items()}
         metrics.update(lr=lr, minibatches=applied.astype(jnp.float32),
