@@ -24,6 +24,12 @@ per-phase timing):
 5. The robot sampler folds in the rollout's finished episodes once per iteration.
 
 Everything is device-side; the Python loop only logs, checkpoints and evaluates.
+
+Several devices (`devices=N`): the arrays with an env axis (env state, recurrent states, tails, the batch) are
+sharded over a one-axis mesh ("env"), everything else (parameters, optimiser, normalisers, sampler, keys) is
+replicated, and the jitted functions keep that layout. The program is the same global program: XLA partitions it,
+so minibatches are drawn from all envs, gradients, the KL stop, the normalisers and the sampler see every device's
+data, and N devices compute what one device computes for the same global batch (up to the order of summation).
 """
 from __future__ import annotations
 
@@ -31,8 +37,11 @@ from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 import optax
 from flax import struct
+from jax.sharding import Mesh, NamedSharding
+from jax.sharding import PartitionSpec as P
 
 from ..layout import Obs
 from ..nets.model import Model
@@ -137,7 +146,8 @@ def normalize_obs(rms: RunningMeanStd, env_obs) -> Obs:
 class Trainer:
     """Chunked recurrent PPO for one env and one model; `total_steps` sets the learning-rate schedule's horizon."""
 
-    def __init__(self, env: Env, model: Model, config: PPOConfig, total_steps: int, fast_compile: bool = False):
+    def __init__(self, env: Env, model: Model, config: PPOConfig, total_steps: int, fast_compile: bool = False,
+                 devices: int | None = 1):
         config = config.for_model(model.recurrent)
         config.check()
         self.env, self.model, self.cfg = env, model, config
@@ -149,17 +159,36 @@ class Trainer:
         self.tx = optax.inject_hyperparams(
             lambda learning_rate: optax.chain(optax.clip_by_global_norm(config.max_grad_norm),
                                               optax.adam(learning_rate, eps=config.adam_eps)))(learning_rate=config.lr)
-        jit = (lambda f: jax.jit(f, compiler_options=FAST_COMPILE)) if fast_compile else jax.jit
-        self.iteration = jit(self._iteration)
-        self.rollout = jit(self._rollout)
-        self.update = jit(self._update)
-        self.evaluate_windows = jit(self._evaluate_windows)
-        self._init = jit(self._init_state)
+        self.mesh = device_mesh(devices, config.num_envs)
+        opts = dict(compiler_options=FAST_COMPILE) if fast_compile else {}
+        if self.mesh is None:
+            jit = lambda f, **_: jax.jit(f, **opts)
+            self._state_sharding = self._batch_sharding = None
+        else:
+            jit = lambda f, out: jax.jit(f, out_shardings=out, **opts)
+            abstract = jax.eval_shape(self._init_state, jax.random.PRNGKey(0))
+            self._state_sharding = state_sharding(abstract, self.mesh)
+            _, abatch, _ = jax.eval_shape(self._rollout, abstract)
+            self._batch_sharding = batch_sharding(abatch, self.mesh)
+        st, bt = self._state_sharding, self._batch_sharding
+        self.iteration = jit(self._iteration, out=(st, None))
+        self.rollout = jit(self._rollout, out=(st, bt, None))
+        self.update = jit(self._update, out=(st, None))
+        self.evaluate_windows = jit(self._evaluate_windows, out=None)
+        self._init = jit(self._init_state, out=st)
 
     # ------------------------------------------------------------------ state
     def init(self, key: jax.Array) -> TrainState:
         """The initial train state (jitted: environment resets and parameter init compile into one program)."""
         return self._init(key)
+
+    @property
+    def num_devices(self) -> int:
+        return 1 if self.mesh is None else self.mesh.size
+
+    def place(self, ts: TrainState) -> TrainState:
+        """A train state (a restored checkpoint, say) laid out over this trainer's devices."""
+        return ts if self._state_sharding is None else jax.device_put(ts, self._state_sharding)
 
     def abstract_state(self) -> TrainState:
         """The train state's structure, shapes and dtypes (`jax.eval_shape` of `init`): nothing is computed. A
@@ -340,3 +369,42 @@ class Trainer:
         ts, batch, m1 = self._rollout(ts)
         ts, m2 = self._update(ts, batch)
         return ts, {**m1, **m2}
+
+
+# ---------------------------------------------------------------------- several devices
+def device_mesh(devices: int | None, num_envs: int) -> Mesh | None:
+    """The one-axis mesh ("env") over the first `devices` devices (None: all visible ones); None for one device."""
+    avail = jax.devices()
+    n = len(avail) if devices is None else int(devices)
+    if not 1 <= n <= len(avail):
+        raise ValueError(f"devices={devices}: expected 1 to {len(avail)} (the visible {avail[0].platform} devices) "
+                         "or null for all")
+    if n == 1:
+        return None
+    if num_envs % n:
+        raise ValueError(f"ppo.num_envs={num_envs} is not a multiple of devices={n}: each device steps an equal "
+                         "share of the envs")
+    return Mesh(np.asarray(avail[:n]), ("env",))
+
+
+def _spec(tree, mesh: Mesh, spec: P):
+    return jax.tree.map(lambda _: NamedSharding(mesh, spec), tree)
+
+
+def state_sharding(ts: TrainState, mesh: Mesh) -> TrainState:
+    """Shardings of a train state: env-axis fields over "env" (axis 0, or axis 1 for the time-major tails), the
+    rest replicated."""
+    env0, env1, rep = P("env"), P(None, "env"), P()
+    return TrainState(
+        params=_spec(ts.params, mesh, rep), opt_state=_spec(ts.opt_state, mesh, rep),
+        obs_rms=_spec(ts.obs_rms, mesh, rep),
+        rew=RewardScaler(returns=NamedSharding(mesh, env0), stats=_spec(ts.rew.stats, mesh, rep)),
+        env=_spec(ts.env, mesh, env0), carry=_spec(ts.carry, mesh, env0), first=NamedSharding(mesh, env0),
+        tail_obs=_spec(ts.tail_obs, mesh, env1), tail_first=NamedSharding(mesh, env1),
+        tail_carry=_spec(ts.tail_carry, mesh, env0), sampler=_spec(ts.sampler, mesh, rep),
+        key=NamedSharding(mesh, rep), iteration=NamedSharding(mesh, rep))
+
+
+def batch_sharding(batch: Batch, mesh: Mesh) -> Batch:
+    """Shardings of a batch: every field is time-major (time, env, ...), sharded over "env" on axis 1."""
+    return _spec(batch, mesh, P(None, "env"))

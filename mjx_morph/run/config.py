@@ -64,6 +64,8 @@ class RunConfig:
     stop_after: Optional[int] = None    # end this invocation after N iterations (with a checkpoint)
     time_limit_min: Optional[float] = None   # end this invocation after about N minutes (with a checkpoint)
     checkpoint_every: int = 50          # iterations between Orbax checkpoints (and always at the end)
+    devices: Optional[int] = None       # devices the envs are sharded over (data parallel, same global batch);
+                                        # None: every visible device
     phase_timing: bool = True           # rollout and update as two jitted calls, to log env steps/s per phase
     fast_compile: bool = False          # XLA CPU optimisations off: faster compiles, slower steps (tests, smoke)
     progress: bool = True               # progress bar with steps/s and ETA
@@ -80,7 +82,7 @@ class RunConfig:
         """Values the types cannot refuse: one line naming the key and what was expected (ValueError)."""
         positive = {"total_steps": self.total_steps, "checkpoint_every": self.checkpoint_every,
                     "num_robots": self.num_robots, "stop_after": self.stop_after,
-                    "time_limit_min": self.time_limit_min, "resume_step": self.resume_step}
+                    "time_limit_min": self.time_limit_min, "resume_step": self.resume_step, "devices": self.devices}
         for key, v in positive.items():
             if v is not None and v <= 0:
                 raise ValueError(f"{key}={v}: expected a positive number" + (" or null" if key != "total_steps"
@@ -93,7 +95,7 @@ class RunConfig:
 IDENTITY = ("env.task", "env.context_features", "arch", "model", "robots", "robots_root", "num_robots", "seed",
             "ppo.num_envs", "ppo.rollout_len", "ppo.window", "ppo.burn_in", "ppo.minibatch_size", "ppo.sampling")
 #: keys of the loop alone, which a resume may change freely; every other key changes only through allow_changes
-FREE = ("run_dir", "stop_after", "time_limit_min", "checkpoint_every", "phase_timing", "fast_compile", "progress",
+FREE = ("run_dir", "devices", "stop_after", "time_limit_min", "checkpoint_every", "phase_timing", "fast_compile", "progress",
         "compile_cache", "allow_changes", "resume_step", "allow_outside_design_space")
 
 

@@ -151,7 +151,8 @@ def train(cfg: Any, experiment: Experiment | None = None, callbacks: Sequence[Ca
     pc = trainer.cfg
     print(f"[mjx_morph] {exp.model.arch} on {cfg.env.task}: {exp.env.num_robots} robots ({exp.robot_set}), "
           f"{exp.model.num_params():,} parameters, {pc.num_envs} envs x {pc.rollout_len} steps = "
-          f"{pc.steps_per_iter:,} steps/iteration, {trainer.num_iters} iterations; run dir {run.path}", flush=True)
+          f"{pc.steps_per_iter:,} steps/iteration, {trainer.num_iters} iterations on {trainer.num_devices} "
+          f"{jax.devices()[0].platform} device(s); run dir {run.path}", flush=True)
     t0 = time.perf_counter()
     print("[mjx_morph] compiling and running the initial state (env resets, parameter init)...", end=" ", flush=True)
     state = jax.block_until_ready(trainer.init(jax.random.PRNGKey(cfg.seed)))
@@ -161,7 +162,7 @@ def train(cfg: Any, experiment: Experiment | None = None, callbacks: Sequence[Ca
         raise RunDirError(f"{run.path / 'checkpoints'}: no checkpoint {cfg.resume_step} to resume from; "
                           f"have {run.steps() or 'none'}")
     if latest is not None:
-        state = run.restore(latest, state)
+        state = trainer.place(run.restore(latest, state))     # the checkpoint may come from another device count
     # everything is read and checked: only now is the run directory written
     run.create()
     for change in run.changes:

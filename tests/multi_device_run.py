@@ -1,0 +1,49 @@
+"""Run by tests/test_devices.py in a fresh process with N virtual CPU devices (XLA_FLAGS must be set before JAX
+starts): train the same tiny config on 1 device and on N devices and print how far apart they end, as JSON."""
+from __future__ import annotations
+
+import json
+import sys
+
+import jax
+import numpy as np
+
+from mjx_morph.nets import make_model
+from mjx_morph.ppo.config import PPOConfig
+from mjx_morph.ppo.trainer import Trainer
+from toy_env import ToyEnv
+
+TINY = dict(d_model=16, num_layers=1, num_heads=2, ffn_dim=32)
+
+
+def run(arch: str, devices: int, iters: int = 3):
+    cfg = PPOConfig(num_envs=8, rollout_len=16, window=8, burn_in=4, minibatch_size=32, epochs=2)
+    model = make_model(arch, hfield=False, decoder_dims=[], precision="fp32", **TINY)
+    trainer = Trainer(ToyEnv(), model, cfg, 8 * 16 * 10, fast_compile=True, devices=devices)
+    ts = trainer.init(jax.random.PRNGKey(0))
+    rows = []
+    for _ in range(iters):
+        ts, m = trainer.iteration(ts)
+        rows.append({k: float(v) for k, v in m.items()})
+    shards = len(ts.carry["actor"]["h"].sharding.device_set) if trainer.model.recurrent else \
+        len(ts.first.sharding.device_set)
+    return ts, rows, shards
+
+
+def main(n: int) -> None:
+    assert len(jax.devices()) == n, jax.devices()
+    out = {}
+    for arch in ("rmomo", "metamorph"):
+        one, rows1, s1 = run(arch, 1)
+        many, rows_n, s_n = run(arch, n)
+        diff = max(float(np.abs(np.asarray(a) - np.asarray(b)).max())
+                   for a, b in zip(jax.tree.leaves(one.params), jax.tree.leaves(many.params)))
+        env_diff = float(np.abs(np.asarray(one.env.obs.proprio) - np.asarray(many.env.obs.proprio)).max())
+        out[arch] = {"param_diff": diff, "env_diff": env_diff, "shards": [s1, s_n],
+                     "minibatches": [r["minibatches"] for r in rows1], "minibatches_n": [r["minibatches"] for r in rows_n],
+                     "loss": [r["loss"] for r in rows1], "loss_n": [r["loss"] for r in rows_n]}
+    print(json.dumps(out))
+
+
+if __name__ == "__main__":
+    main(int(sys.argv[1]))
