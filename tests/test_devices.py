@@ -15,8 +15,9 @@ import pytest
 from mjx_morph.ppo.trainer import device_mesh
 
 HERE = Path(__file__).resolve().parent
-#: parameters after 3 iterations (2 epochs x 2 minibatches each, Adam lr 3e-4 warming up): reassociated float32 sums
-PARAM_TOLERANCE = 1e-5
+#: parameters after 3 iterations (2 epochs x 4 minibatches each, Adam lr 3e-4 warming up): reassociated float32
+#: sums; measured 3e-8 (rmomo) and 1.5e-8 (metamorph)
+PARAM_TOLERANCE = 1e-6
 
 
 @pytest.fixture(scope="module")

@@ -1,7 +1,7 @@
 """The `precision` key (mjx_morph/nets/precision.py): what each mode computes, and that training runs in each.
 
 - bf16 keeps float32 where precision.py promises it (parameters, carries, outputs) and its outputs stay within a
-  stated tolerance of fp32 for every architecture at the paper's width (2 of the 5 layers, to compile quickly), over a
+  stated tolerance of fp32 for every architecture (but the *_plus variants) at the paper's width (2 of the 5 layers, to compile quickly), over a
   sequence with burn-in;
 - fp32 and tf32 differ only in the matmul precision XLA is asked for (on a CPU both compute float32);
 - the jitted iteration runs in bf16 (each code path of the update) and in tf32, with the first minibatch after a
@@ -43,7 +43,7 @@ def _inputs(model):
     return robots, obs, resets
 
 
-@pytest.mark.parametrize("arch", ARCHS)
+@pytest.mark.parametrize("arch", [a for a in ARCHS if not a.endswith("_plus")])   # _plus: one more MLP, same path
 def test_bf16_outputs_match_fp32(arch):
     outs = {}
     for p in ("fp32", "bf16"):
@@ -98,11 +98,10 @@ def env():
     return ToyEnv()
 
 
-#: every code path of the update in bf16 (feed-forward single transitions, LSTM + hypernetwork, per-sample generated
-#: layers + cell); the forward pass of every architecture in bf16 is checked above, every architecture's update in fp32
+#: the update's two code paths in bf16 (feed-forward single transitions; windows with burn-in, LSTM + hypernetwork
+#: tables); the forward pass of every architecture in bf16 is checked above, every architecture's update in fp32
 #: by test_ppo_bookkeeping.py (each case here costs ~12 s of CPU compilation)
-@pytest.mark.parametrize("arch,precision", [("metamorph", "bf16"), ("rmomo", "bf16"), ("hyperrmomo", "bf16"),
-                                            ("rmomo", "tf32")])
+@pytest.mark.parametrize("arch,precision", [("metamorph", "bf16"), ("rmomo", "bf16"), ("rmomo", "tf32")])
 def test_iteration_runs_in_each_precision(env, arch, precision):
     model = make_model(arch, hfield=False, decoder_dims=[], precision=precision, **TINY)
     trainer = Trainer(env, model, CFG, 3 * 16 * 4, fast_compile=True)
@@ -125,6 +124,5 @@ def test_physics_matmuls_are_float32_whatever_the_networks_use():
     text = str(jax.make_jaxpr(env.vstep)(state, action))
     dots = re.findall(r"= dot_general\[(.*?)\n\s*\]", text, flags=re.S)
     assert len(dots) > 10 and all("HIGHEST" in params for params in dots)
-    env_default = make_env("gen/train", "ft", self_collision=False, matmul_precision="default")
-    text = str(jax.make_jaxpr(env_default.vstep)(state, action))
-    assert "HIGHEST" not in text
+    with pytest.raises(ValueError, match="env.matmul_precision='tf32'"):
+        make_env("gen/train", "ft", matmul_precision="tf32")
