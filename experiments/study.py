@@ -4,6 +4,9 @@
     python -m experiments.study context_features archs=[rmomo] dry_run=true          # list the runs only
     python -m experiments.study train_size archs=[rmomo] -- preset=smoke robots=gen/train   # extra run overrides
 
+A study file lists `runs` (name -> overrides of experiments.run), and optionally `common` (overrides of every run),
+`archs` (the default architectures) and `evaluate` (the sets to evaluate each run on).
+
 Run directories: <out>/<study>/<env>-<arch>-<run>-s<seed> (default out: runs/studies). Each run is an ordinary
 `experiments.run` run: rerunning the study resumes unfinished runs (finished ones are not retrained; their
 evaluation runs again). Afterwards: python -m experiments.report runs=[<out>/<study>] out=<dir>.
@@ -13,7 +16,7 @@ from __future__ import annotations
 import dataclasses
 import sys
 from pathlib import Path
-from typing import List
+from typing import List, Optional
 
 import yaml
 from omegaconf import MISSING
@@ -25,10 +28,13 @@ from mjx_morph.sim.env import EnvConfig
 from . import cli
 
 
+DEFAULT_ARCHS = ["rmomo", "modumorph"]
+
+
 @dataclasses.dataclass
 class StudyConfig:
     name: str = MISSING                 # the study: a file of experiments/conf/study (without .yaml)
-    archs: List[str] = dataclasses.field(default_factory=lambda: ["rmomo", "modumorph"])
+    archs: Optional[List[str]] = None   # None: the study file's `archs`, else [rmomo, modumorph]
     seeds: List[int] = dataclasses.field(default_factory=lambda: [0])
     env: EnvConfig = dataclasses.field(default_factory=EnvConfig)   # env=<task> and env.<option>=... for every run
     out: str = "runs/studies"
@@ -50,12 +56,14 @@ def plan(c: StudyConfig) -> list[tuple[Path, list[str], list[str]]]:
     default = EnvConfig(task=c.env.task)
     env_over = [f"env={c.env.task}"] + [f"env.{k.name}={getattr(c.env, k.name)}" for k in dataclasses.fields(EnvConfig)
                                          if getattr(c.env, k.name) != getattr(default, k.name)]
+    common = list(spec.get("common", []))        # overrides of every run of the study (before each run's own)
     runs = []
-    for arch in c.archs:
+    for arch in (c.archs if c.archs is not None else spec.get("archs", DEFAULT_ARCHS)):
         for seed in c.seeds:
             for name, overrides in spec["runs"].items():
                 d = Path(c.out) / c.name / f"{c.env.task}-{arch}-{name}-s{seed}"
-                runs.append((d, [*env_over, f"arch={arch}", f"seed={seed}", f"run_dir={d}", *overrides, *c.run],
+                runs.append((d, [*env_over, f"arch={arch}", f"seed={seed}", f"run_dir={d}", *common, *overrides,
+                                 *c.run],
                              list(spec.get("evaluate", ["train", "test"]))))
     return runs
 

@@ -66,6 +66,14 @@ def test_interrupted_and_resumed_run_ends_like_uninterrupted(full_run, exp, tmp_
     assert [int(r["iteration"]) for r in RunDir(d).read_metrics()] == [1, 2, 3]
 
 
+def test_stop_at_ends_the_run_for_good(exp, tmp_path):
+    """stop_at=N ends the run at iteration N of its schedule; rerunning it trains no further (unlike stop_after)."""
+    d = tmp_path / "stop_at"
+    for _ in range(2):
+        train(config(f"run_dir={d}", "stop_at=1"), exp)
+        assert RunDir(d).latest_step() == 1 and [int(r["iteration"]) for r in RunDir(d).read_metrics()] == [1]
+
+
 class Recorder(Callback):
     """Records what the loop reports to its callbacks."""
 

@@ -62,6 +62,8 @@ class RunConfig:
     total_steps: int = 100_000_000      # env steps (control steps summed over envs); the schedule's horizon
     run_dir: Optional[str] = None       # None: runs/<task>-<arch>-s<seed>; rerun with the same run_dir to resume
     stop_after: Optional[int] = None    # end this invocation after N iterations (with a checkpoint)
+    stop_at: Optional[int] = None       # end the run at iteration N of its schedule (a rerun trains no further;
+                                        # e.g. the first 20 M steps of a 100 M schedule: total_steps=1e8 stop_at=245)
     time_limit_min: Optional[float] = None   # end this invocation after about N minutes (with a checkpoint)
     checkpoint_every: int = 50          # iterations between Orbax checkpoints (and always at the end)
     devices: Optional[int] = None       # devices the envs are sharded over (data parallel, same global batch);
@@ -82,7 +84,8 @@ class RunConfig:
         """Values the types cannot refuse: one line naming the key and what was expected (ValueError)."""
         positive = {"total_steps": self.total_steps, "checkpoint_every": self.checkpoint_every,
                     "num_robots": self.num_robots, "stop_after": self.stop_after,
-                    "time_limit_min": self.time_limit_min, "resume_step": self.resume_step, "devices": self.devices}
+                    "time_limit_min": self.time_limit_min, "resume_step": self.resume_step, "devices": self.devices,
+                    "stop_at": self.stop_at}
         for key, v in positive.items():
             if v is not None and v <= 0:
                 raise ValueError(f"{key}={v}: expected a positive number" + (" or null" if key != "total_steps"
@@ -95,7 +98,8 @@ class RunConfig:
 IDENTITY = ("env.task", "env.context_features", "arch", "model", "robots", "robots_root", "num_robots", "seed",
             "ppo.num_envs", "ppo.rollout_len", "ppo.window", "ppo.burn_in", "ppo.minibatch_size", "ppo.sampling")
 #: keys of the loop alone, which a resume may change freely; every other key changes only through allow_changes
-FREE = ("run_dir", "devices", "stop_after", "time_limit_min", "checkpoint_every", "phase_timing", "fast_compile", "progress",
+FREE = ("run_dir", "devices", "stop_after", "stop_at", "time_limit_min", "checkpoint_every", "phase_timing",
+        "fast_compile", "progress",
         "compile_cache", "allow_changes", "resume_step", "allow_outside_design_space")
 
 

@@ -7,7 +7,7 @@ calls the iteration, and reports through callbacks (metrics, progress bar, check
 
 A resumed run ends where an uninterrupted one would: the whole train state (parameters, optimiser, normalisers,
 sampler, env and recurrent state, keys) is in the checkpoint. `stop_after` and `time_limit_min` end an invocation
-early with a checkpoint; Ctrl-C does too.
+early with a checkpoint, `stop_at` ends the run at that iteration for good (a rerun does nothing more); Ctrl-C does too.
 
 Callbacks (`Callback`): `on_start(loop)` once, `on_iteration(loop, state, row)` after every iteration with the
 metrics row, `on_stop(loop, state, reason)` once at the end, reason "done" (the invocation's last iteration ran),
@@ -176,6 +176,8 @@ def train(cfg: Any, experiment: Experiment | None = None, callbacks: Sequence[Ca
         print(f"[mjx_morph] resumed from {run.path / 'checkpoints' / str(latest)} (iteration {latest})", flush=True)
     start = int(state.iteration)
     stop = min(trainer.num_iters, start + cfg.stop_after) if cfg.stop_after else trainer.num_iters
+    if cfg.stop_at is not None:
+        stop = max(start, min(stop, cfg.stop_at))
     loop = Loop(cfg, run, exp, start, stop, trainer.num_iters)
     callbacks = default_callbacks(cfg) if callbacks is None else list(callbacks)
     # time_limit_min: end the invocation once the next iteration would not fit (1.5x the slowest one seen)
