@@ -4,6 +4,7 @@
     python -m experiments.check_sim unimal100/test mujoco_defaults=true   # MuJoCo's defaults (100 / 50) too
     python -m experiments.check_sim gen/train iterations=100 ls_iterations=50 steps=25
     python -m experiments.check_sim unimal100/train mutated=1000    # 1000 mutants of the train robots, one tree
+    python -m experiments.check_sim unimal100/train task=csr        # height-field tasks: MJX vs MuJoCo C, same patches
 
 Prints per robot the worst body-position error (m) over `steps` control steps of the padded MJX robot against the
 robot alone in MuJoCo C on MetaMorph's floor, split into the padding's share (padded vs alone, both MuJoCo C) and
@@ -17,6 +18,7 @@ import sys
 import time
 
 import jax
+import numpy as np
 from omegaconf import MISSING
 
 from mjx_morph.run import register
@@ -45,6 +47,8 @@ class CheckSimConfig:
     seed: int = 0
     floor_contacts: str = "box"              # box: MetaMorph's floor (MuJoCo C box, its rule in MJX); plane: a plane
     matmul_precision: str = _ENV.matmul_precision   # MJX's matmul precision: highest | default (TF32 on GPUs)
+    task: str = "ft"                         # csr | obstacle: compare the padded MJX env with the same padded model in
+                                             # MuJoCo C on the same height-field patches (fidelity.compare_hfield)
     mutated: int = 0                         # > 0: check this many robots made from the set by DERL's mutation
                                              # operators (one random operator each) instead of the set itself
 
@@ -57,6 +61,8 @@ def check(a: CheckSimConfig) -> None:
     if a.mutated:
         robots = mutated_robots(rs.robots, a.mutated, seed=a.seed)
         rs = dataclasses.replace(rs, name=f"{rs.name} mutated x{a.mutated}", robots=tuple(robots))
+    if a.task not in ("ft",):
+        return check_hfield(a, rs)
     tree = build_shared_tree(rs.robots)
     print(f"# {rs.name}: shared tree of {tree.num_slots} bodies (nv {6 + 2 * tree.num_limb_slots}) "
           f"for {len(rs)} robots of at most {max(m.num_nodes for m in rs.robots)} bodies")
@@ -94,6 +100,28 @@ def check(a: CheckSimConfig) -> None:
         print(f"# worst {worst.error:.2e} m ({worst.name}); {len(over)} of {len(res)} over {a.tolerance:g} m")
         bad += len(over)
     if bad:
+        raise SystemExit(1)
+
+
+def check_hfield(a: CheckSimConfig, rs) -> None:
+    """The height-field comparison of `task` (the padding's own share is the floor check's: it does not depend on the
+    terrain)."""
+    opts = SolverOptions(iterations=a.iterations, ls_iterations=a.ls_iterations, self_collision=a.self_collision)
+    t0 = time.time()
+    print(f"# comparing {len(rs)} robots on {a.task} with MuJoCo C on the same height-field patches...", flush=True)
+    res = fidelity.compare_hfield(rs.robots, a.task, opts, steps=a.steps, seed=a.seed)
+    print(f"# {rs.name} on {a.task}: {len(res)} robots, solver iterations {a.iterations}, line search "
+          f"{a.ls_iterations}, {a.steps} control steps ({time.time() - t0:.0f} s); mjx = padded MJX vs padded MuJoCo "
+          "C (float64), max body-position error (m); first step over 1e-5 m")
+    for r in res:
+        first = int(np.argmax(r.steps > 1e-5)) if (r.steps > 1e-5).any() else -1
+        flag = "" if r.mjx <= a.tolerance else "   OVER TOLERANCE"
+        print(f"{r.name:40s} {r.mjx:9.2e}   {first:3d}{flag}")
+    s = fidelity.summary([r.mjx for r in res])
+    over = [r for r in res if r.mjx > a.tolerance]
+    print(f"# mjx      median {s['median']:.2e}  p99 {s['p99']:.2e}  max {s['max']:.2e} m; {len(over)} of {len(res)} "
+          f"over {a.tolerance:g} m")
+    if over:
         raise SystemExit(1)
 
 

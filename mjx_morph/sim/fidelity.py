@@ -189,3 +189,68 @@ def compare(robots: Sequence[Morphology], options: SolverOptions = SolverOptions
         out.append(Result(m.name, float(err.max()), float(np.abs(x_padded - x_alone).max()),
                           float(np.abs(x_mjx - x_padded).max()), float(np.abs(x_nudged - x_alone).max()), err))
     return out
+
+
+@dataclasses.dataclass
+class HfieldResult:
+    name: str
+    mjx: float              # max body-position error (m), padded MJX against padded MuJoCo C on the same patches
+    steps: np.ndarray       # per control step
+
+
+def compare_hfield(robots: Sequence[Morphology], task: str, options: SolverOptions = SolverOptions(),
+                   steps: int = 25, seed: int = 0) -> list[HfieldResult]:
+    """The height-field tasks (csr, obstacle): every robot in the env's padded MJX model against the same padded
+    model in MuJoCo C (float64), from the env's own reset state (a generated terrain) under N(0, 0.9) actions. Before
+    each control step both get the height-field patch the env centres under their own torso (`terrain.patch`), so
+    the comparison is MJX's height-field collider and float32 against MuJoCo C's. Body positions are compared
+    through MuJoCo C's kinematics of both states."""
+    from .env import EnvConfig, UnimalEnv
+    robots = tuple(robots)
+    env = UnimalEnv(robots, EnvConfig(task=task, iterations=options.iterations, ls_iterations=options.ls_iterations,
+                                      self_collision=options.self_collision))
+    if not env.terrain.uses_hfield:
+        raise ValueError(f"task {task!r} has no height field; compare() checks the floors")
+    sm, R = env.sm, len(robots)
+    rng = np.random.default_rng(seed)
+    keys = jax.random.split(jax.random.PRNGKey(seed), R)
+    start = jax.jit(jax.vmap(env.reset))(keys, jnp.arange(R))
+    act_mask = np.asarray(sm.policy.act_mask)
+    actions = np.where(act_mask[:, None], rng.normal(0.0, 0.9, (R, steps, act_mask.shape[1])), 0.0)
+
+    def run(state, acts):
+        def body(s, a):
+            s = env.step(s, a)
+            return s, s.physics.qpos
+        return jax.lax.scan(body, state, acts)[1]
+    qpos_mjx = np.asarray(jax.jit(jax.vmap(run))(start, jnp.asarray(actions, jnp.float32)), np.float64)
+
+    patch = jax.jit(env.terrain.patch)
+    tab = jax.tree_util.tree_map(np.asarray, sm.tables)
+    out = []
+    for r, m in enumerate(robots):
+        mm = sm.mj_models[r]
+        mm.geom_margin[inert_geoms(sm.tree, r, mm)] = INERT_MARGIN
+        hgeom = env._hgeom
+        ts = jax.tree_util.tree_map(lambda x: x[r], start.episode.terrain)
+        d = mujoco.MjData(mm)
+        d.qpos[:] = np.asarray(start.physics.qpos[r], np.float64)
+        d.qvel[:] = np.asarray(start.physics.qvel[r], np.float64)
+        dk = mujoco.MjData(mm)
+        bodies = tab.body_of_token[r][:m.num_nodes]
+        errs = np.zeros(steps)
+        for t in range(steps):
+            data, pos = patch(ts, jnp.float32(d.qpos[0]), jnp.float32(d.qpos[1]))
+            mm.hfield_data[:] = np.asarray(data, np.float64)
+            mm.geom_pos[hgeom] = np.asarray(pos, np.float64)
+            a = np.clip(actions[r, t], -1, 1)
+            d.ctrl[:] = np.concatenate([a, [0.0]])[tab.ctrl_src[r]]
+            for _ in range(env.config.substeps):
+                mujoco.mj_step(mm, d)
+            mujoco.mj_kinematics(mm, d)
+            x_c = d.xpos[bodies].copy()
+            dk.qpos[:] = qpos_mjx[r, t]
+            mujoco.mj_kinematics(mm, dk)
+            errs[t] = np.abs(dk.xpos[bodies] - x_c).max()
+        out.append(HfieldResult(m.name, float(errs.max()), errs))
+    return out
