@@ -61,7 +61,7 @@ def check(a: CheckSimConfig) -> None:
     if a.mutated:
         robots = mutated_robots(rs.robots, a.mutated, seed=a.seed)
         rs = dataclasses.replace(rs, name=f"{rs.name} mutated x{a.mutated}", robots=tuple(robots))
-    if a.task not in ("ft",):
+    if a.task != "ft":
         return check_hfield(a, rs)
     tree = build_shared_tree(rs.robots)
     print(f"# {rs.name}: shared tree of {tree.num_slots} bodies (nv {6 + 2 * tree.num_limb_slots}) "

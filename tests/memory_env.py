@@ -13,26 +13,12 @@ teaches the model about the cue at such a step comes only through the recurrent 
 starts, so `score_from` = window + burn-in scores exactly the steps that need the stored states to be right."""
 from __future__ import annotations
 
-from typing import NamedTuple
-
 import jax
 import jax.numpy as jnp
 
 from mjx_morph.layout import Obs, Robots
 from mjx_morph.sim import sampling
-from toy_env import Episode, EpisodeStats
-
-
-class State(NamedTuple):
-    """The real EnvState's layout; the "physics" is the episode's cue."""
-    physics: jax.Array
-    episode: Episode
-    obs: Obs
-    reward: jax.Array
-    done: jax.Array
-    truncated: jax.Array
-    ended: EpisodeStats
-    key: jax.Array
+from toy_env import Episode, EpisodeStats, State   # State: the "physics" here is the episode's cue
 
 
 class MemoryEnv:

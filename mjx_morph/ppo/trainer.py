@@ -163,14 +163,12 @@ class Trainer:
         opts = dict(compiler_options=FAST_COMPILE) if fast_compile else {}
         if self.mesh is None:
             jit = lambda f, **_: jax.jit(f, **opts)
-            self._state_sharding = self._batch_sharding = None
+            self._state_sharding = bt = None
         else:
             jit = lambda f, out: jax.jit(f, out_shardings=out, **opts)
-            abstract = jax.eval_shape(self._init_state, jax.random.PRNGKey(0))
-            self._state_sharding = state_sharding(abstract, self.mesh)
-            _, abatch, _ = jax.eval_shape(self._rollout, abstract)
-            self._batch_sharding = batch_sharding(abatch, self.mesh)
-        st, bt = self._state_sharding, self._batch_sharding
+            self._state_sharding = state_sharding(self.mesh)
+            bt = NamedSharding(self.mesh, P(None, "env"))     # every batch field is time-major (time, env, ...)
+        st = self._state_sharding
         self.iteration = jit(self._iteration, out=(st, None))
         self.rollout = jit(self._rollout, out=(st, bt, None))
         self.update = jit(self._update, out=(st, None))
@@ -387,24 +385,10 @@ def device_mesh(devices: int | None, num_envs: int) -> Mesh | None:
     return Mesh(np.asarray(avail[:n]), ("env",))
 
 
-def _spec(tree, mesh: Mesh, spec: P):
-    return jax.tree.map(lambda _: NamedSharding(mesh, spec), tree)
-
-
-def state_sharding(ts: TrainState, mesh: Mesh) -> TrainState:
-    """Shardings of a train state: env-axis fields over "env" (axis 0, or axis 1 for the time-major tails), the
-    rest replicated."""
-    env0, env1, rep = P("env"), P(None, "env"), P()
-    return TrainState(
-        params=_spec(ts.params, mesh, rep), opt_state=_spec(ts.opt_state, mesh, rep),
-        obs_rms=_spec(ts.obs_rms, mesh, rep),
-        rew=RewardScaler(returns=NamedSharding(mesh, env0), stats=_spec(ts.rew.stats, mesh, rep)),
-        env=_spec(ts.env, mesh, env0), carry=_spec(ts.carry, mesh, env0), first=NamedSharding(mesh, env0),
-        tail_obs=_spec(ts.tail_obs, mesh, env1), tail_first=NamedSharding(mesh, env1),
-        tail_carry=_spec(ts.tail_carry, mesh, env0), sampler=_spec(ts.sampler, mesh, rep),
-        key=NamedSharding(mesh, rep), iteration=NamedSharding(mesh, rep))
-
-
-def batch_sharding(batch: Batch, mesh: Mesh) -> Batch:
-    """Shardings of a batch: every field is time-major (time, env, ...), sharded over "env" on axis 1."""
-    return _spec(batch, mesh, P(None, "env"))
+def state_sharding(mesh: Mesh) -> TrainState:
+    """Shardings of a train state, one per field (a tree prefix: it applies to every array of the field): env-axis
+    fields over "env" (axis 0, or axis 1 for the time-major tails), the rest replicated."""
+    env0, env1, rep = (NamedSharding(mesh, spec) for spec in (P("env"), P(None, "env"), P()))
+    return TrainState(params=rep, opt_state=rep, obs_rms=rep, rew=RewardScaler(returns=env0, stats=rep), env=env0,
+                      carry=env0, first=env0, tail_obs=env1, tail_first=env1, tail_carry=env0, sampler=rep, key=rep,
+                      iteration=rep)

@@ -73,10 +73,10 @@ class Result:
     error_by_step: np.ndarray
 
 
-def padded_c_models(sm, floor: str = METAMORPH_FLOOR) -> list[mujoco.MjModel]:
-    """The stacked model's padded robots compiled for MuJoCo C on `floor` (MetaMorph's box by default), with the
-    stacked model's options (self-collision pair cut included) and its inert geoms never in contact."""
-    out = compile_padded(sm.robots, sm.tree, WorldSpec(geoms=floor), sm.options)
+def padded_c_models(sm, world: WorldSpec = WorldSpec(geoms=METAMORPH_FLOOR)) -> list[mujoco.MjModel]:
+    """The stacked model's padded robots compiled for MuJoCo C in `world` (MetaMorph's box floor by default), with
+    the stacked model's options (self-collision pair cut included) and its inert geoms never in contact."""
+    out = compile_padded(sm.robots, sm.tree, world, sm.options)
     for r, mm in enumerate(out):
         mm.geom_margin[inert_geoms(sm.tree, r, mm)] = INERT_MARGIN
     return out
@@ -174,7 +174,7 @@ def compare(robots: Sequence[Morphology], options: SolverOptions = SolverOptions
     with contact.floor(floor_contacts), jax.default_matmul_precision(matmul_precision):
         f = jax.jit(jax.vmap(run), compiler_options=compiler_options).lower(*args).compile()
     xs = np.asarray(f(*args))
-    padded_c = padded_c_models(sm, c_floor)
+    padded_c = padded_c_models(sm, WorldSpec(geoms=c_floor))
     out = []
     for r, m in enumerate(robots):
         real = bodies[r, :m.num_nodes]
@@ -227,11 +227,9 @@ def compare_hfield(robots: Sequence[Morphology], task: str, options: SolverOptio
 
     patch = jax.jit(env.terrain.patch)
     tab = jax.tree_util.tree_map(np.asarray, sm.tables)
+    hgeom = env._hgeom
     out = []
-    for r, m in enumerate(robots):
-        mm = sm.mj_models[r]
-        mm.geom_margin[inert_geoms(sm.tree, r, mm)] = INERT_MARGIN
-        hgeom = env._hgeom
+    for r, (m, mm) in enumerate(zip(robots, padded_c_models(sm, sm.world))):
         ts = jax.tree_util.tree_map(lambda x: x[r], start.episode.terrain)
         d = mujoco.MjData(mm)
         d.qpos[:] = np.asarray(start.physics.qpos[r], np.float64)
