@@ -11,6 +11,9 @@ jitted calls, then (fused=true) the same number as the single fused jitted itera
     python -m experiments.bench_train arch=rmomo mode=update            # the update alone, on a synthetic batch
     python -m experiments.bench_train arch=rmomo mode=update profile=true profile_dir=/tmp/trace
 
+`seeds=[0,1,...]` times S runs side by side in one program (`Trainer(seeds=S)`): the rates are then env steps/s of
+all seeds together, and `per_run_*` the rates each run sees.
+
 `mode=update` skips the physics: it times the update on a batch of random observations of the right shapes with
 the KL stop off (`ppo.kl_threshold` = inf, so every epoch runs: the worst case), and compiles nothing else, which
 makes comparing learner variants quick. `profile=true` writes a trace of one timed update (TensorBoard's profile
@@ -34,7 +37,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from mjx_morph.ppo.trainer import Batch, Trainer
+from mjx_morph.ppo.trainer import Batch, Trainer, seed_keys, seed_state, stack_seeds
 from mjx_morph.run import RunConfig, build, register
 
 from . import cli, flops
@@ -128,9 +131,12 @@ def hlo_sources(hlo_text: str) -> dict[str, str]:
 
 
 def _flops_out(out: dict, trainer: Trainer, ts, batch, update_s: float, precision: str) -> None:
-    f = flops.count(trainer._update, ts, batch)
+    if trainer.num_seeds is not None:      # one seed's program, counted once per seed
+        f = trainer.num_seeds * flops.count(trainer._update, seed_state(ts, 0), seed_state(batch, 0))
+    else:
+        f = flops.count(trainer._update, ts, batch)
     out["update_matmul_gflop_per_iter"] = f / 1e9
-    out["update_matmul_gflop_per_env_step"] = f / trainer.cfg.steps_per_iter / 1e9
+    out["update_matmul_gflop_per_env_step"] = f / (trainer.cfg.steps_per_iter * (trainer.num_seeds or 1)) / 1e9
     out["update_tflops"] = f / update_s / 1e12 if update_s > 0 else float("nan")
     peak = flops.peak_flops(jax.devices()[0].device_kind, precision)
     out["update_mfu"] = out["update_tflops"] * 1e12 / peak if peak else None
@@ -168,7 +174,9 @@ def bench(cfg: BenchTrainConfig) -> None:
     env, model, trainer, robots = exp.env, exp.model, exp.trainer, exp.robot_set
     build_s = time.perf_counter() - t0
     pc = trainer.cfg
-    out = {"arch": model.arch, "env": cfg.env.task, "robots": robots, "num_robots": env.num_robots,
+    runs = len(cfg.seeds) if cfg.seeds else 1
+    steps = pc.steps_per_iter * runs          # env steps of one iteration, all seeds together
+    out = {"arch": model.arch, "seeds": runs, "env": cfg.env.task, "robots": robots, "num_robots": env.num_robots,
            "device": jax.devices()[0].device_kind, "precision": cfg.precision, "mode": cfg.mode,
            "self_collision": cfg.env.self_collision, "num_envs": pc.num_envs, "rollout_len": pc.rollout_len,
            "minibatch_size": pc.minibatch_size, "steps_per_iter": pc.steps_per_iter, "params": model.num_params()}
@@ -176,6 +184,8 @@ def bench(cfg: BenchTrainConfig) -> None:
     if cfg.mode == "update":
         t0 = time.perf_counter()
         ts, batch = synthetic_state_and_batch(trainer, jax.random.PRNGKey(cfg.seed))
+        if trainer.num_seeds is not None:
+            ts, batch = stack_seeds([ts] * runs), stack_seeds([batch] * runs)
         jax.block_until_ready(batch)
         init_s = time.perf_counter() - t0
         note(f"{model.arch}: built in {build_s:.0f} s, synthetic batch {init_s:.0f} s; compiling the update...")
@@ -191,11 +201,11 @@ def bench(cfg: BenchTrainConfig) -> None:
             jax.block_until_ready(ts1.params)
             upd.append(time.perf_counter() - t0)
         med = float(np.median(upd))
-        out.update(update_sps=pc.steps_per_iter / med, update_s=med, epochs_run_mean=float(m["epochs_run"]),
+        out.update(update_sps=steps / med, update_s=med, epochs_run_mean=float(np.mean(m["epochs_run"])),
                    compile_s={"build": build_s, "batch": init_s, "update": compile_update})
     else:
         t0 = time.perf_counter()
-        ts = jax.block_until_ready(trainer.init(jax.random.PRNGKey(cfg.seed)))
+        ts = jax.block_until_ready(trainer.init(seed_keys(cfg.seeds) if cfg.seeds else jax.random.PRNGKey(cfg.seed)))
         init_s = time.perf_counter() - t0
 
         def one_iteration(ts):
@@ -216,10 +226,10 @@ def bench(cfg: BenchTrainConfig) -> None:
             ts, batch, m, r, u = one_iteration(ts)
             roll.append(r)
             upd.append(u)
-            epochs.append(float(m["epochs_run"]))
+            epochs.append(float(np.mean(m["epochs_run"])))
         med = float(np.median(upd))
-        out.update(rollout_sps=pc.steps_per_iter / np.median(roll), update_sps=pc.steps_per_iter / med, update_s=med,
-                   end_to_end_sps=pc.steps_per_iter / (np.median(roll) + med),
+        out.update(rollout_sps=steps / np.median(roll), update_sps=steps / med, update_s=med,
+                   end_to_end_sps=steps / (np.median(roll) + med),
                    epochs_run_mean=float(np.mean(epochs)), update_s_per_epoch=med / max(np.mean(epochs), 1e-9),
                    compile_s={"build": build_s, "init": init_s, "rollout": compile_rollout, "update": compile_update})
         if cfg.fused:
@@ -234,8 +244,11 @@ def bench(cfg: BenchTrainConfig) -> None:
                 ts, m = trainer.iteration(ts)
                 jax.block_until_ready(ts.params)
                 times.append(time.perf_counter() - t0)
-            out["fused_sps"] = pc.steps_per_iter / np.median(times)
+            out["fused_sps"] = steps / np.median(times)
         out["hours_per_100M"] = 1e8 / out["end_to_end_sps"] / 3600
+        if runs > 1:
+            out["per_run_end_to_end_sps"] = out["end_to_end_sps"] / runs
+            out["hours_per_100M_each_run"] = out["hours_per_100M"] * runs
     # the FLOPs of the worst case (every epoch); scaled by the epochs that ran when the KL stop cut the update
     _flops_out(out, trainer, ts, batch, med / max(out["epochs_run_mean"] / pc.epochs, 1e-9), cfg.precision)
     out["peak_memory_gb"] = _memory_gb()

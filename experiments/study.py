@@ -9,7 +9,8 @@ A study file lists `runs` (name -> overrides of experiments.run), and optionally
 
 Run directories: <out>/<study>/<env>-<arch>-<run>-s<seed> (default out: runs/studies). Each run is an ordinary
 `experiments.run` run: rerunning the study resumes unfinished runs (finished ones are not retrained; their
-evaluation runs again). Afterwards: python -m experiments.report runs=[<out>/<study>] out=<dir>.
+evaluation runs again). The seeds of a run train side by side in one program (`seeds=[...]` of experiments.run; those
+at the same checkpoint together), unless side_by_side=false. Afterwards: python -m experiments.report runs=[<out>/<study>] out=<dir>.
 """
 from __future__ import annotations
 
@@ -22,7 +23,7 @@ import yaml
 from omegaconf import MISSING
 
 from mjx_morph.eval.evaluate import evaluate_run
-from mjx_morph.run import CONF_DIR, compose_run_config, register, train, use_compile_cache
+from mjx_morph.run import CONF_DIR, RunDir, compose_run_config, register, train, use_compile_cache
 from mjx_morph.sim.env import EnvConfig
 
 from . import cli
@@ -40,14 +41,24 @@ class StudyConfig:
     out: str = "runs/studies"
     episodes: int = 4                   # evaluation episodes per robot
     dry_run: bool = False               # print the runs and stop
+    side_by_side: bool = True           # train the seeds of a run in one program (experiments.run seeds=[...])
     run: List[str] = dataclasses.field(default_factory=list)   # extra experiments.run overrides (after --)
 
 
 register("study_schema", StudyConfig)
 
 
-def plan(c: StudyConfig) -> list[tuple[Path, list[str], list[str]]]:
-    """[(run dir, experiments.run overrides, sets to evaluate)] of a study."""
+@dataclasses.dataclass(frozen=True)
+class StudyRun:
+    dir: Path
+    overrides: list[str]     # experiments.run overrides of this run alone
+    sets: list[str]          # the sets to evaluate it on
+    group: tuple[str, str]   # (arch, run name): the runs of a group differ only in their seed
+    seed: int
+
+
+def plan(c: StudyConfig) -> list[StudyRun]:
+    """Every run of a study, grouped by architecture and run name, seeds last."""
     f = CONF_DIR / "study" / f"{c.name}.yaml"
     if not f.exists():
         known = sorted(p.stem for p in (CONF_DIR / "study").glob("*.yaml"))
@@ -59,27 +70,51 @@ def plan(c: StudyConfig) -> list[tuple[Path, list[str], list[str]]]:
     common = list(spec.get("common", []))        # overrides of every run of the study (before each run's own)
     runs = []
     for arch in (c.archs if c.archs is not None else spec.get("archs", DEFAULT_ARCHS)):
-        for seed in c.seeds:
-            for name, overrides in spec["runs"].items():
+        for name, overrides in spec["runs"].items():
+            for seed in c.seeds:
                 d = Path(c.out) / c.name / f"{c.env.task}-{arch}-{name}-s{seed}"
-                runs.append((d, [*env_over, f"arch={arch}", f"seed={seed}", f"run_dir={d}", *common, *overrides,
-                                 *c.run],
-                             list(spec.get("evaluate", ["train", "test"]))))
+                runs.append(StudyRun(d, [*env_over, f"arch={arch}", f"seed={seed}", f"run_dir={d}", *common,
+                                         *overrides, *c.run],
+                                     list(spec.get("evaluate", ["train", "test"])), (arch, name), seed))
     return runs
+
+
+def batches(runs: list[StudyRun], side_by_side: bool) -> list[tuple[list[StudyRun], list[str]]]:
+    """[(runs, experiments.run overrides)]: each group's seeds at the same checkpoint trained in one program."""
+    out = []
+    for group in dict.fromkeys(r.group for r in runs):
+        members = [r for r in runs if r.group == group]
+        if not side_by_side:
+            out += [([r], r.overrides) for r in members]
+            continue
+        by_step: dict = {}
+        for r in members:
+            by_step.setdefault(RunDir(r.dir).latest_step(), []).append(r)
+        for same in by_step.values():
+            if len(same) == 1:
+                out.append((same, same[0].overrides))
+                continue
+            first = same[0]
+            template = str(first.dir)[: -len(f"-s{first.seed}")] + "-s{seed}"
+            ov = [o for o in first.overrides if not o.startswith(("seed=", "run_dir="))]
+            out.append((same, [*ov, f"seeds=[{','.join(str(r.seed) for r in same)}]", f'run_dir="{template}"']))
+    return out
 
 
 def run_study(c: StudyConfig) -> None:
     runs = plan(c)
-    configs = [compose_run_config(ov) for _, ov, _ in runs]     # every run's config is checked before any runs
-    for d, ov, sets in runs:
-        print(f"python -m experiments.run {' '.join(ov)}   # then evaluate {sets}")
+    configs = [compose_run_config(r.overrides) for r in runs]     # every run's config is checked before any runs
+    for r in runs:
+        print(f"python -m experiments.run {' '.join(r.overrides)}   # then evaluate {r.sets}")
     if c.dry_run:
         return
     use_compile_cache(configs[0].compile_cache if configs else None)
-    for i, ((d, _, sets), cfg) in enumerate(zip(runs, configs)):
-        print(f"[study] {i + 1}/{len(runs)}: {d}", flush=True)
-        train(cfg)
-        evaluate_run(d, sets, episodes=c.episodes)
+    todo = batches(runs, c.side_by_side)
+    for i, (members, overrides) in enumerate(todo):
+        print(f"[study] {i + 1}/{len(todo)}: {', '.join(str(r.dir) for r in members)}", flush=True)
+        train(compose_run_config(overrides))
+        for r in members:
+            evaluate_run(r.dir, r.sets, episodes=c.episodes)
     print(f"[study] done; report: python -m experiments.report runs=[{Path(c.out) / c.name}] out=<dir>")
 
 

@@ -17,10 +17,10 @@ per-phase timing):
    individually as in the original PPO.
 3. GAE (γ 0.99, λ 0.95, time-limit semantics) with V(s_T) from the live state; advantages normalised once over
    the whole rollout.
-4. Epochs x minibatches (whole windows, a fresh permutation per epoch) as one `lax.scan`. Before each update the
-   approximate KL on the minibatch is computed with the current parameters (the same forward pass as the
-   gradient); if it exceeds the threshold that update is not applied and all remaining minibatches and epochs are
-   skipped (`lax.cond`, so skipped work is not computed).
+4. Epochs x minibatches (whole windows, a fresh permutation per epoch) as one `lax.while_loop`. Before each update
+   the approximate KL on the minibatch is computed with the current parameters (the same forward pass as the
+   gradient); if it exceeds the threshold that update is not applied and the loop ends: the remaining minibatches
+   and epochs are not computed.
 5. The robot sampler folds in the rollout's finished episodes once per iteration.
 
 Everything is device-side; the Python loop only logs, checkpoints and evaluates.
@@ -30,9 +30,16 @@ sharded over a one-axis mesh ("env"), everything else (parameters, optimiser, no
 replicated, and the jitted functions keep that layout. The program is the same global program: XLA partitions it,
 so minibatches are drawn from all envs, gradients, the KL stop, the normalisers and the sampler see every device's
 data, and N devices compute what one device computes for the same global batch (up to the order of summation).
+
+Several seeds in one program (`seeds=S`): the train state gets a leading seed axis and every jitted function is the
+single-seed function under `jax.vmap`, so seed i computes what a run of seed i alone computes. The seeds are
+independent: the KL stop is per seed (the update loop runs while some seed still updates; a stopped seed's
+parameters no longer change). With several devices the mesh is ("seed", "env"): the seed axis is spread over
+gcd(S, devices) devices (no communication between them) and each seed's envs over the rest.
 """
 from __future__ import annotations
 
+import math
 from typing import Any, NamedTuple
 
 import jax
@@ -105,7 +112,8 @@ class Minibatch(NamedTuple):
 
 
 class SGDCarry(NamedTuple):
-    """What one minibatch update carries to the next (all epochs' minibatches are one scan)."""
+    """What one minibatch update carries to the next (all epochs' minibatches are one loop)."""
+    step: jax.Array              # () int32, the next minibatch
     params: Any
     opt_state: Any
     stopped: jax.Array           # the KL stop fired: every later minibatch is skipped
@@ -147,7 +155,9 @@ class Trainer:
     """Chunked recurrent PPO for one env and one model; `total_steps` sets the learning-rate schedule's horizon."""
 
     def __init__(self, env: Env, model: Model, config: PPOConfig, total_steps: int, fast_compile: bool = False,
-                 devices: int | None = 1):
+                 devices: int | None = 1, seeds: int | None = None):
+        """`seeds`: None for one run; S for S independent runs side by side (a leading seed axis of size S on the
+        train state, the batch and the metrics; `init` then takes S keys)."""
         config = config.for_model(model.recurrent)
         config.check()
         self.env, self.model, self.cfg = env, model, config
@@ -159,25 +169,36 @@ class Trainer:
         self.tx = optax.inject_hyperparams(
             lambda learning_rate: optax.chain(optax.clip_by_global_norm(config.max_grad_norm),
                                               optax.adam(learning_rate, eps=config.adam_eps)))(learning_rate=config.lr)
-        self.mesh = device_mesh(devices, config.num_envs)
+        if seeds is not None and int(seeds) < 1:
+            raise ValueError(f"seeds={seeds}: expected a positive number of seeds or None")
+        self.num_seeds = None if seeds is None else int(seeds)
+        self.mesh = device_mesh(devices, config.num_envs, self.num_seeds)
         opts = dict(compiler_options=FAST_COMPILE) if fast_compile else {}
+        seeded = self.num_seeds is not None
         if self.mesh is None:
             jit = lambda f, **_: jax.jit(f, **opts)
             self._state_sharding = bt = None
         else:
             jit = lambda f, out: jax.jit(f, out_shardings=out, **opts)
-            self._state_sharding = state_sharding(self.mesh)
-            bt = NamedSharding(self.mesh, P(None, "env"))     # every batch field is time-major (time, env, ...)
+            self._state_sharding = state_sharding(self.mesh, seeded)
+            # every batch field is time-major (time, env, ...)
+            bt = NamedSharding(self.mesh, P("seed", None, "env") if seeded else P(None, "env"))
         st = self._state_sharding
-        self.iteration = jit(self._iteration, out=(st, None))
-        self.rollout = jit(self._rollout, out=(st, bt, None))
-        self.update = jit(self._update, out=(st, None))
-        self.evaluate_windows = jit(self._evaluate_windows, out=None)
-        self._init = jit(self._init_state, out=st)
+        each = jax.vmap if seeded else (lambda f: f)
+        self.iteration = jit(each(self._iteration), out=(st, None))
+        self.rollout = jit(each(self._rollout), out=(st, bt, None))
+        self.update = jit(each(self._update), out=(st, None))
+        self.evaluate_windows = jit(each(self._evaluate_windows), out=None)
+        self._init = jit(each(self._init_state), out=st)
 
     # ------------------------------------------------------------------ state
     def init(self, key: jax.Array) -> TrainState:
-        """The initial train state (jitted: environment resets and parameter init compile into one program)."""
+        """The initial train state (jitted: environment resets and parameter init compile into one program).
+        With `seeds=S`, `key` holds S keys (`seed_keys`) and the state has a leading seed axis."""
+        typed = jax.dtypes.issubdtype(jnp.asarray(key).dtype, jax.dtypes.prng_key)
+        if self.num_seeds is not None and jnp.shape(key) != (self.num_seeds, *(() if typed else (2,))):
+            raise ValueError(f"init: expected {self.num_seeds} keys (one per seed), got an array of shape "
+                             f"{jnp.shape(key)}")
         return self._init(key)
 
     @property
@@ -189,8 +210,8 @@ class Trainer:
         return ts if self._state_sharding is None else jax.device_put(ts, self._state_sharding)
 
     def abstract_state(self) -> TrainState:
-        """The train state's structure, shapes and dtypes (`jax.eval_shape` of `init`): nothing is computed. A
-        checkpoint is restored into it."""
+        """ONE run's train state: structure, shapes and dtypes (`jax.eval_shape` of the single-seed init), nothing
+        computed. A checkpoint (always one seed's) is restored into it."""
         return jax.eval_shape(self._init_state, jax.random.PRNGKey(0))
 
     def _init_state(self, key: jax.Array) -> TrainState:
@@ -332,29 +353,23 @@ class Trainer:
         grad_fn = jax.value_and_grad(self._loss, has_aux=True)
         zero_info = LossInfo(*([jnp.float32(0.0)] * len(LossInfo._fields)))
 
-        def mb_step(c: SGDCarry, x):
-            mb_ids, step = x
-            params, opt, stopped, acc, applied, first_info = c
+        def running(c: SGDCarry):
+            return (c.step < ids.shape[0]) & ~c.stopped
 
-            def run(_):
-                (_, info), grads = grad_fn(params, batch, mb_ids)
-                ok = info.approx_kl <= cfg.kl_threshold
-                updates, new_opt = self.tx.update(grads, opt, params)
-                new_params = optax.apply_updates(params, updates)
-                keep = lambda a, b: jax.tree.map(lambda x, y: jnp.where(ok, x, y), a, b)
-                return keep(new_params, params), keep(new_opt, opt), ~ok, info, ok
-
-            def skip(_):
-                return params, opt, jnp.asarray(True), zero_info, jnp.asarray(False)
-
-            params, opt, stop_now, info, ok = jax.lax.cond(stopped, skip, run, None)
-            acc = jax.tree.map(lambda a, x: a + jnp.where(ok, x, 0.0), acc, info)
+        def mb_step(c: SGDCarry) -> SGDCarry:
+            (_, info), grads = grad_fn(c.params, batch, ids[c.step])
+            ok = info.approx_kl <= cfg.kl_threshold
+            updates, new_opt = self.tx.update(grads, c.opt_state, c.params)
+            new_params = optax.apply_updates(c.params, updates)
+            keep = lambda a, b: jax.tree.map(lambda x, y: jnp.where(ok, x, y), a, b)
+            acc = jax.tree.map(lambda a, x: a + jnp.where(ok, x, 0.0), c.acc, info)
             # the first minibatch's statistics, applied or not (a rejected one is when wrong stored states show)
-            first_info = jax.tree.map(lambda f, x: jnp.where(step == 0, x, f), first_info, info)
-            return SGDCarry(params, opt, stopped | stop_now, acc, applied + ok.astype(jnp.int32), first_info), None
+            first_info = jax.tree.map(lambda f, x: jnp.where(c.step == 0, x, f), c.first_info, info)
+            return SGDCarry(c.step + 1, keep(new_params, c.params), keep(new_opt, c.opt_state), ~ok, acc,
+                            c.applied + ok.astype(jnp.int32), first_info)
 
-        c0 = SGDCarry(ts.params, opt_state, jnp.asarray(False), zero_info, jnp.int32(0), zero_info)
-        (params, opt_state, _, acc, applied, first_info), _ = jax.lax.scan(mb_step, c0, (ids, jnp.arange(ids.shape[0])))
+        c0 = SGDCarry(jnp.int32(0), ts.params, opt_state, jnp.asarray(False), zero_info, jnp.int32(0), zero_info)
+        _, params, opt_state, _, acc, applied, first_info = jax.lax.while_loop(running, mb_step, c0)
         n = jnp.maximum(applied, 1).astype(jnp.float32)
         metrics = {f"{k}": v / n for k, v in acc._asdict().items()}
         metrics.update(lr=lr, minibatches=applied.astype(jnp.float32),
@@ -370,8 +385,25 @@ class Trainer:
 
 
 # ---------------------------------------------------------------------- several devices
-def device_mesh(devices: int | None, num_envs: int) -> Mesh | None:
-    """The one-axis mesh ("env") over the first `devices` devices (None: all visible ones); None for one device."""
+def seed_keys(seeds) -> jax.Array:
+    """The init keys of several seeds, stacked: `trainer.init(seed_keys([0, 1]))`."""
+    return jnp.stack([jax.random.PRNGKey(int(s)) for s in seeds])
+
+
+def seed_state(ts: TrainState, i: int) -> TrainState:
+    """Seed i's train state out of a state with a leading seed axis (what its checkpoint holds)."""
+    return jax.tree.map(lambda x: x[i], ts)
+
+
+def stack_seeds(states) -> TrainState:
+    """One state with a leading seed axis from single-seed states (restored checkpoints, say)."""
+    return jax.tree.map(lambda *xs: jnp.stack(xs), *states)
+
+
+def device_mesh(devices: int | None, num_envs: int, seeds: int | None = None) -> Mesh | None:
+    """The mesh ("seed", "env") over the first `devices` devices (None: all visible ones); None for one device.
+    With `seeds` runs side by side, gcd(seeds, devices) devices split the seeds (no communication between them)
+    and each seed's envs are sharded over the rest; one run uses a seed axis of size 1."""
     avail = jax.devices()
     n = len(avail) if devices is None else int(devices)
     if not 1 <= n <= len(avail):
@@ -379,16 +411,21 @@ def device_mesh(devices: int | None, num_envs: int) -> Mesh | None:
                          "or null for all")
     if n == 1:
         return None
-    if num_envs % n:
-        raise ValueError(f"ppo.num_envs={num_envs} is not a multiple of devices={n}: each device steps an equal "
-                         "share of the envs")
-    return Mesh(np.asarray(avail[:n]), ("env",))
+    by_seed = math.gcd(seeds or 1, n)
+    by_env = n // by_seed
+    if num_envs % by_env:
+        raise ValueError(f"ppo.num_envs={num_envs} is not a multiple of {by_env}, the devices each run's envs are "
+                         f"spread over (devices={n}" + (f", seeds={seeds}" if seeds else "") + "): each device steps "
+                         "an equal share of the envs")
+    return Mesh(np.asarray(avail[:n]).reshape(by_seed, by_env), ("seed", "env"))
 
 
-def state_sharding(mesh: Mesh) -> TrainState:
+def state_sharding(mesh: Mesh, seeded: bool = False) -> TrainState:
     """Shardings of a train state, one per field (a tree prefix: it applies to every array of the field): env-axis
-    fields over "env" (axis 0, or axis 1 for the time-major tails), the rest replicated."""
-    env0, env1, rep = (NamedSharding(mesh, spec) for spec in (P("env"), P(None, "env"), P()))
+    fields over "env" (axis 0, or axis 1 for the time-major tails), the rest replicated; with `seeded`, every field's
+    leading seed axis over "seed"."""
+    lead = ("seed",) if seeded else ()
+    env0, env1, rep = (NamedSharding(mesh, P(*lead, *spec)) for spec in (("env",), (None, "env"), ()))
     return TrainState(params=rep, opt_state=rep, obs_rms=rep, rew=RewardScaler(returns=env0, stats=rep), env=env0,
                       carry=env0, first=env0, tail_obs=env1, tail_first=env1, tail_carry=env0, sampler=rep, key=rep,
                       iteration=rep)

@@ -61,5 +61,6 @@ def build(cfg: RunConfig) -> Experiment:
     name, robots = train_robots(cfg)
     env = make_env_for(cfg, robots)
     model = make_model_for(cfg)
-    trainer = Trainer(env, model, cfg.ppo, cfg.total_steps, fast_compile=cfg.fast_compile, devices=cfg.devices)
+    trainer = Trainer(env, model, cfg.ppo, cfg.total_steps, fast_compile=cfg.fast_compile, devices=cfg.devices,
+                      seeds=None if cfg.seeds is None else len(cfg.seeds))
     return Experiment(cfg, name, robots, env, model, trainer)

@@ -52,6 +52,8 @@ class RunConfig:
                                         # the physics is always float32 at the highest matmul precision)
     ppo: PPOConfig = dataclasses.field(default_factory=PPOConfig)
     seed: int = 0
+    seeds: Optional[List[int]] = None   # several seeds side by side in one compiled program, each its own run
+                                        # (replaces `seed`; run_dir must then contain {seed}: run_dir="runs/x-s{seed}")
     robots: Optional[str] = None        # robot set or path; None: unimal100/train when the original robots exist,
                                         # else the shipped gen/train
     robots_root: Optional[str] = None   # folder of the original robots (None: $MJX_MORPH_UNIMALS, else
@@ -60,7 +62,8 @@ class RunConfig:
     allow_outside_design_space: bool = False   # accept robot files with values far beyond the UNIMAL design space
                                         # (mjx_morph.unimal.design_space bounds); off: such a file is refused
     total_steps: int = 100_000_000      # env steps (control steps summed over envs); the schedule's horizon
-    run_dir: Optional[str] = None       # None: runs/<task>-<arch>-s<seed>; rerun with the same run_dir to resume
+    run_dir: Optional[str] = None       # None: runs/<task>-<arch>-s<seed>; rerun with the same run_dir to resume;
+                                        # {seed} in it is replaced by the seed
     stop_after: Optional[int] = None    # end this invocation after N iterations (with a checkpoint)
     stop_at: Optional[int] = None       # end the run at iteration N of its schedule (a rerun trains no further;
                                         # e.g. the first 20 M steps of a 100 M schedule: total_steps=1e8 stop_at=245)
@@ -90,6 +93,12 @@ class RunConfig:
             if v is not None and v <= 0:
                 raise ValueError(f"{key}={v}: expected a positive number" + (" or null" if key != "total_steps"
                                                                              and key != "checkpoint_every" else ""))
+        if self.seeds is not None:
+            if not self.seeds or len(set(self.seeds)) < len(self.seeds) or min(self.seeds) < 0:
+                raise ValueError(f"seeds={self.seeds}: expected distinct non-negative seeds, or null for one run")
+            if self.run_dir is not None and "{seed}" not in self.run_dir:
+                raise ValueError(f"run_dir={self.run_dir}: with seeds={self.seeds} each seed needs its own run "
+                                 "directory; put {seed} in it (quoted for Hydra: 'run_dir=\"runs/x-s{seed}\"')")
         self.ppo.check_values()
         check_precision(self.precision)
 
@@ -98,7 +107,7 @@ class RunConfig:
 IDENTITY = ("env.task", "env.context_features", "arch", "model", "robots", "robots_root", "num_robots", "seed",
             "ppo.num_envs", "ppo.rollout_len", "ppo.window", "ppo.burn_in", "ppo.minibatch_size", "ppo.sampling")
 #: keys of the loop alone, which a resume may change freely; every other key changes only through allow_changes
-FREE = ("run_dir", "devices", "stop_after", "stop_at", "time_limit_min", "checkpoint_every", "phase_timing",
+FREE = ("run_dir", "devices", "seeds", "stop_after", "stop_at", "time_limit_min", "checkpoint_every", "phase_timing",
         "fast_compile", "progress",
         "compile_cache", "allow_changes", "resume_step", "allow_outside_design_space")
 

@@ -5,6 +5,8 @@ calls the iteration, and reports through callbacks (metrics, progress bar, check
     train(cfg, experiment=exp)                  # reuse an `Experiment` (its compiled functions) of the same config
     train(cfg, callbacks=[*default_callbacks(cfg), MyCallback()])
 
+    train(cfg_with_seeds)                       # seeds=[0,1,2]: three runs side by side in one program (below)
+
 A resumed run ends where an uninterrupted one would: the whole train state (parameters, optimiser, normalisers,
 sampler, env and recurrent state, keys) is in the checkpoint. `stop_after` and `time_limit_min` end an invocation
 early with a checkpoint, `stop_at` ends the run at that iteration for good (a rerun does nothing more); Ctrl-C does too.
@@ -12,6 +14,12 @@ early with a checkpoint, `stop_at` ends the run at that iteration for good (a re
 Callbacks (`Callback`): `on_start(loop)` once, `on_iteration(loop, state, row)` after every iteration with the
 metrics row, `on_stop(loop, state, reason)` once at the end, reason "done" (the invocation's last iteration ran),
 "time_limit", "interrupted" or "error". Only `run_iteration` touches the device; everything here is plain Python.
+
+Several seeds (`seeds=[0, 1, 2]`): one compiled program trains every seed (`Trainer(seeds=S)`, a vmapped train
+state), and each seed is an ordinary run with its own run directory (`run_dir` with `{seed}` in it, default
+runs/<task>-<arch>-s<seed>), config.yaml (with `seed` = that seed, as if trained alone), metrics and checkpoints: it
+can be resumed, evaluated or reported alone. The callbacks are called once per seed (`loop.member`), with the state
+of all seeds; `loop.own(state)` is that seed's.
 """
 from __future__ import annotations
 
@@ -23,7 +31,9 @@ from typing import Any, Sequence
 
 import jax
 
-from ..ppo.trainer import Trainer, TrainState
+import numpy as np
+
+from ..ppo.trainer import Trainer, TrainState, seed_keys, seed_state, stack_seeds
 from .build import Experiment, build
 from .config import FREE, IDENTITY, RunConfig, to_dict, to_schema
 from .figures import learning_curve
@@ -39,6 +49,13 @@ class Loop:
     start: int          # iterations already done when this invocation started (a resumed run: > 0)
     stop: int           # the iteration this invocation ends at (unless the time limit comes first)
     num_iters: int      # iterations of the whole run
+    member: int = 0     # which of the runs trained side by side (`seeds`) this one is
+    members: int = 1    # how many runs are trained side by side
+    seeded: bool = False  # the state given to callbacks holds every seed (a leading seed axis)
+
+    def own(self, state: TrainState) -> TrainState:
+        """This run's train state (the state callbacks get holds every seed's when `seeds` are side by side)."""
+        return seed_state(state, self.member) if self.seeded else state
 
 
 class Callback:
@@ -62,20 +79,27 @@ class MetricsLog(Callback):
 
 
 class ProgressBar(Callback):
-    """A tqdm bar with the mean episode return, env steps/s and the ETA."""
+    """A tqdm bar with the mean episode return (over the seeds side by side), env steps/s (all seeds) and the ETA."""
 
     def on_start(self, loop):
         from tqdm import tqdm
-        self.bar = tqdm(total=loop.num_iters, initial=loop.start, unit="it", dynamic_ncols=True, file=sys.stderr) \
-            if loop.start < loop.num_iters else None
+        if loop.member == 0:
+            self.returns = []
+            self.bar = tqdm(total=loop.num_iters, initial=loop.start, unit="it", dynamic_ncols=True,
+                            file=sys.stderr) if loop.start < loop.num_iters else None
 
     def on_iteration(self, loop, state, row):
-        if self.bar is not None:
-            self.bar.set_postfix(ret=f"{row['episode_return']:.1f}", sps=f"{row['sps']:,.0f}", refresh=False)
+        if self.bar is None:
+            return
+        self.returns.append(row["episode_return"])
+        if loop.member == loop.members - 1:
+            ret = float(np.nanmean(self.returns)) if np.isfinite(self.returns).any() else float("nan")
+            self.bar.set_postfix(ret=f"{ret:.1f}", sps=f"{row['sps'] * loop.members:,.0f}", refresh=False)
             self.bar.update(1)
+            self.returns = []
 
     def on_stop(self, loop, state, reason):
-        if self.bar is not None:
+        if self.bar is not None and loop.member == loop.members - 1:
             self.bar.close()
 
 
@@ -89,9 +113,10 @@ class Checkpoints(Callback):
     def on_iteration(self, loop, state, row):
         it = int(row["iteration"])
         if it % self.every == 0 or it == loop.stop:
-            loop.run.save(it, state)
+            loop.run.save(it, loop.own(state))
 
     def on_stop(self, loop, state, reason):
+        state = loop.own(state)
         it = int(state.iteration)
         if reason in ("time_limit", "interrupted") and it > (loop.run.latest_step() or 0):
             loop.run.save(it, state)
@@ -117,9 +142,10 @@ def default_callbacks(cfg: RunConfig) -> list[Callback]:
     return [MetricsLog(), *([ProgressBar()] if cfg.progress else []), Checkpoints(cfg.checkpoint_every), Summary()]
 
 
-def run_iteration(trainer: Trainer, state: TrainState, phase_timing: bool) -> tuple[TrainState, dict[str, float]]:
-    """One PPO iteration on the device, timed: -> (new state, metrics row without the iteration counters).
-    With `phase_timing` the rollout and the update run as two jitted calls, so each phase's rate is known."""
+def run_iteration(trainer: Trainer, state: TrainState, phase_timing: bool) -> tuple[TrainState, list[dict[str, float]]]:
+    """One PPO iteration on the device, timed: -> (new state, one metrics row per seed, without the iteration
+    counters). With `phase_timing` the rollout and the update run as two jitted calls, so each phase's rate is known.
+    `sps` is each run's env steps per second of wall time (seeds side by side share the time)."""
     steps = trainer.cfg.steps_per_iter
     t0 = time.perf_counter()
     if phase_timing:
@@ -136,54 +162,102 @@ def run_iteration(trainer: Trainer, state: TrainState, phase_timing: bool) -> tu
         jax.block_until_ready(state.params)
         t2 = time.perf_counter()
         phases = {"rollout_sps": float("nan"), "update_sps": float("nan")}
-    row = {**{k: float(v) for k, v in jax.device_get(metrics).items()}, "sps": steps / (t2 - t0), **phases,
-           "wall_s": t2 - t0}
-    return state, row
+    common = {"sps": steps / (t2 - t0), **phases, "wall_s": t2 - t0}
+    metrics = jax.device_get(metrics)
+    if trainer.num_seeds is None:
+        return state, [{**{k: float(v) for k, v in metrics.items()}, **common}]
+    return state, [{**{k: float(v[i]) for k, v in metrics.items()}, **common} for i in range(trainer.num_seeds)]
 
 
-def train(cfg: Any, experiment: Experiment | None = None, callbacks: Sequence[Callback] | None = None) -> Path:
-    """Train (or resume) the run of `cfg`; returns its run directory."""
+def member_configs(cfg: RunConfig) -> list[RunConfig]:
+    """The runs of `cfg`: itself, or one per seed of `seeds` (each with its `seed`, no `seeds`, and its run
+    directory: `run_dir` with `{seed}` replaced, or the default one)."""
+    seeds = [cfg.seed] if cfg.seeds is None else list(cfg.seeds)
+    return [dataclasses.replace(cfg, seed=s, seeds=None,
+                                run_dir=None if cfg.run_dir is None else cfg.run_dir.replace("{seed}", str(s)))
+            for s in seeds]
+
+
+def _resume_step(cfg: RunConfig, runs: list[RunDir]) -> int | None:
+    """The checkpoint every run resumes from (None: a fresh start); seeds side by side must agree on it."""
+    if cfg.resume_step is not None:
+        for run in runs:
+            if cfg.resume_step not in run.steps():
+                raise RunDirError(f"{run.path / 'checkpoints'}: no checkpoint {cfg.resume_step} to resume from; "
+                                  f"have {run.steps() or 'none'}")
+        return cfg.resume_step
+    latest = [run.latest_step() for run in runs]
+    if len(set(latest)) > 1:
+        where = ", ".join(f"{run.path} at {s or 'no checkpoint'}" for run, s in zip(runs, latest))
+        raise RunDirError(f"seeds={cfg.seeds}: the runs to train side by side are at different iterations ({where}); "
+                          "resume them separately, or side by side only those at the same iteration. Nothing was "
+                          "changed")
+    return latest[0]
+
+
+def train(cfg: Any, experiment: Experiment | None = None, callbacks: Sequence[Callback] | None = None
+          ) -> Path | list[Path]:
+    """Train (or resume) the run of `cfg`; returns its run directory (with `seeds`: the list of the seeds' run
+    directories)."""
     cfg = to_schema(cfg)
     cfg.check()
-    run = RunDir(cfg.run_dir or cfg.default_run_dir(), to_dict(cfg), IDENTITY, FREE, tuple(cfg.allow_changes))
+    members = member_configs(cfg)
+    seeded = cfg.seeds is not None
+    runs = [RunDir(m.run_dir or m.default_run_dir(), to_dict(m), IDENTITY, FREE, tuple(m.allow_changes))
+            for m in members]
+    if len({run.path for run in runs}) < len(runs):
+        raise ValueError(f"seeds={cfg.seeds}: the seeds' run directories coincide ({runs[0].path}); put {{seed}} "
+                         "in run_dir")
     exp = experiment if experiment is not None else build(cfg)     # validates the robots, the model, the geometry
     trainer = exp.trainer
+    if trainer.num_seeds != (len(members) if seeded else None):
+        raise ValueError(f"the experiment's trainer runs seeds={trainer.num_seeds}, the config "
+                         f"{len(members) if seeded else None}: build it from this config")
     pc = trainer.cfg
     print(f"[mjx_morph] {exp.model.arch} on {cfg.env.task}: {exp.env.num_robots} robots ({exp.robot_set}), "
           f"{exp.model.num_params():,} parameters, {pc.num_envs} envs x {pc.rollout_len} steps = "
           f"{pc.steps_per_iter:,} steps/iteration, {trainer.num_iters} iterations on {trainer.num_devices} "
-          f"{jax.devices()[0].platform} device(s); run dir {run.path}", flush=True)
+          f"{jax.devices()[0].platform} device(s)"
+          + (f"; seeds {list(cfg.seeds)} side by side, run dirs {', '.join(str(r.path) for r in runs)}" if seeded
+             else f"; run dir {runs[0].path}"), flush=True)
     t0 = time.perf_counter()
     print("[mjx_morph] compiling and running the initial state (env resets, parameter init)...", end=" ", flush=True)
-    state = jax.block_until_ready(trainer.init(jax.random.PRNGKey(cfg.seed)))
+    keys = seed_keys(cfg.seeds) if seeded else jax.random.PRNGKey(cfg.seed)
+    state = jax.block_until_ready(trainer.init(keys))
     print(f"{time.perf_counter() - t0:.0f} s", flush=True)
-    latest = run.latest_step() if cfg.resume_step is None else cfg.resume_step
-    if cfg.resume_step is not None and cfg.resume_step not in run.steps():
-        raise RunDirError(f"{run.path / 'checkpoints'}: no checkpoint {cfg.resume_step} to resume from; "
-                          f"have {run.steps() or 'none'}")
+    latest = _resume_step(cfg, runs)
     if latest is not None:
-        state = trainer.place(run.restore(latest, state))     # the checkpoint may come from another device count
-    # everything is read and checked: only now is the run directory written
-    run.create()
-    for change in run.changes:
-        print(f"[mjx_morph] resuming with a changed setting: {change} (recorded in config_history.yaml)", flush=True)
-    if cfg.resume_step is not None:
-        moved = run.set_aside_after(cfg.resume_step)
-        if moved:
-            print(f"[mjx_morph] checkpoints {moved} moved to {run.path / 'checkpoints.orphaned'}", flush=True)
-    run.truncate_metrics(latest or 0)          # rows after the checkpoint (or of a start that never saved one)
-    if latest is not None:
-        print(f"[mjx_morph] resumed from {run.path / 'checkpoints' / str(latest)} (iteration {latest})", flush=True)
-    start = int(state.iteration)
+        # the checkpoints may come from another device count, or from seeds trained alone
+        if seeded:
+            state = trainer.place(stack_seeds([run.restore(latest, trainer.abstract_state()) for run in runs]))
+        else:
+            state = trainer.place(runs[0].restore(latest, state))
+    # everything is read and checked: only now are the run directories written
+    for run in runs:
+        run.create()
+        for change in run.changes:
+            print(f"[mjx_morph] {run.path.name}: resuming with a changed setting: {change} (recorded in "
+                  "config_history.yaml)", flush=True)
+        if cfg.resume_step is not None:
+            moved = run.set_aside_after(cfg.resume_step)
+            if moved:
+                print(f"[mjx_morph] checkpoints {moved} moved to {run.path / 'checkpoints.orphaned'}", flush=True)
+        run.truncate_metrics(latest or 0)      # rows after the checkpoint (or of a start that never saved one)
+        if latest is not None:
+            print(f"[mjx_morph] resumed from {run.path / 'checkpoints' / str(latest)} (iteration {latest})",
+                  flush=True)
+    start = latest or 0
     stop = min(trainer.num_iters, start + cfg.stop_after) if cfg.stop_after else trainer.num_iters
     if cfg.stop_at is not None:
         stop = max(start, min(stop, cfg.stop_at))
-    loop = Loop(cfg, run, exp, start, stop, trainer.num_iters)
+    loops = [Loop(m, run, exp, start, stop, trainer.num_iters, i, len(members), seeded)
+             for i, (m, run) in enumerate(zip(members, runs))]
     callbacks = default_callbacks(cfg) if callbacks is None else list(callbacks)
     # time_limit_min: end the invocation once the next iteration would not fit (1.5x the slowest one seen)
     deadline = time.perf_counter() + 60.0 * cfg.time_limit_min if cfg.time_limit_min else None
-    for cb in callbacks:
-        cb.on_start(loop)
+    for loop in loops:
+        for cb in callbacks:
+            cb.on_start(loop)
     it, slowest, reason = start, 0.0, "error"
     try:
         while it < stop:
@@ -192,26 +266,28 @@ def train(cfg: Any, experiment: Experiment | None = None, callbacks: Sequence[Ca
                 break
             if it == start:
                 print("[mjx_morph] compiling the train step (the first iteration includes it)...", flush=True)
-            state, row = run_iteration(trainer, state, cfg.phase_timing)
+            state, rows = run_iteration(trainer, state, cfg.phase_timing)
             if it == start:
-                print(f"[mjx_morph] first iteration, compilation included: {row['wall_s']:.0f} s", flush=True)
-            it = int(state.iteration)
+                print(f"[mjx_morph] first iteration, compilation included: {rows[0]['wall_s']:.0f} s", flush=True)
+            it += 1
             if it > start + 1:             # the first iteration of an invocation includes compilation
-                slowest = max(slowest, row["wall_s"])
-            row = {"iteration": it, "env_steps": it * pc.steps_per_iter, **row}
-            for cb in callbacks:
-                cb.on_iteration(loop, state, row)
+                slowest = max(slowest, rows[0]["wall_s"])
+            for loop, row in zip(loops, rows):
+                row = {"iteration": it, "env_steps": it * pc.steps_per_iter, **row}
+                for cb in callbacks:
+                    cb.on_iteration(loop, state, row)
         else:
             reason = "done"
     except KeyboardInterrupt:
         reason = "interrupted"
         raise
     finally:
-        for cb in callbacks:
-            cb.on_stop(loop, state, reason)
-        run.close()
+        for loop in loops:
+            for cb in callbacks:
+                cb.on_stop(loop, state, reason)
+            loop.run.close()
         if reason in ("time_limit", "interrupted"):
             what = "time limit reached" if reason == "time_limit" else "interrupted"
-            print(f"\n[mjx_morph] {what} at iteration {int(state.iteration)}; checkpoint saved. "
+            print(f"\n[mjx_morph] {what} at iteration {it}; checkpoint saved. "
                   f"Rerun the same command to resume.", file=sys.stderr, flush=True)
-    return run.path
+    return [run.path for run in runs] if seeded else runs[0].path
