@@ -131,10 +131,12 @@ def hlo_sources(hlo_text: str) -> dict[str, str]:
 
 
 def _flops_out(out: dict, trainer: Trainer, ts, batch, update_s: float, precision: str) -> None:
+    trips = trainer.cfg.epochs * trainer.num_minibatches       # the minibatch loop, every epoch run
     if trainer.num_seeds is not None:      # one seed's program, counted once per seed
-        f = trainer.num_seeds * flops.count(trainer._update, seed_state(ts, 0), seed_state(batch, 0))
+        f = trainer.num_seeds * flops.count(trainer._update, seed_state(ts, 0), seed_state(batch, 0),
+                                            while_trips=trips)
     else:
-        f = flops.count(trainer._update, ts, batch)
+        f = flops.count(trainer._update, ts, batch, while_trips=trips)
     out["update_matmul_gflop_per_iter"] = f / 1e9
     out["update_matmul_gflop_per_env_step"] = f / (trainer.cfg.steps_per_iter * (trainer.num_seeds or 1)) / 1e9
     out["update_tflops"] = f / update_s / 1e12 if update_s > 0 else float("nan")

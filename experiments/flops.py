@@ -3,9 +3,9 @@
     flops = matmul_flops(jax.make_jaxpr(fn)(*args))
 
 Counted: every `dot_general` (2 x batch x M x N x K), convolutions are not expected here. Loops: a `scan` counts its
-body `length` times; a `cond` counts its dearest branch (the PPO update's "run this minibatch" branch, so the count is
-the worst case with every epoch run); a `while` counts its body once (its trip count is not static; the learner has
-none, the MJX solver does, which is why the physics is not counted). Element-wise work (activations, LayerNorm,
+body `length` times; a `cond` counts its dearest branch; a `while` counts its body `while_trips` times (its trip count
+is not static: the caller says it; the PPO update's one while loop is its minibatches, epochs x minibatches when the KL
+stop never fires, the worst case). The MJX solver's while loops are why the physics is not counted. Element-wise work (activations, LayerNorm,
 softmax, Adam) is not counted: the figure is the matmul work, the part the matrix units can speed up.
 
 Why not XLA's cost analysis of the compiled program: it counts a while loop's body once, and the update is a loop of
@@ -55,7 +55,7 @@ def _sub_jaxprs(eqn) -> list[Any]:
     return out
 
 
-def matmul_flops(jaxpr: Any) -> int:
+def matmul_flops(jaxpr: Any, while_trips: int = 1) -> int:
     """Matmul FLOPs of a (closed) jaxpr, loops and branches accounted for as the module docstring says."""
     jaxpr = getattr(jaxpr, "jaxpr", jaxpr)
     total = 0
@@ -64,14 +64,17 @@ def matmul_flops(jaxpr: Any) -> int:
         if name == "dot_general":
             total += _dot_flops(eqn)
         elif name == "cond":
-            total += max(matmul_flops(b) for b in eqn.params["branches"])
+            total += max(matmul_flops(b, while_trips) for b in eqn.params["branches"])
         elif name == "scan":
-            total += eqn.params["length"] * matmul_flops(eqn.params["jaxpr"])
+            total += eqn.params["length"] * matmul_flops(eqn.params["jaxpr"], while_trips)
+        elif name == "while":
+            total += (while_trips * matmul_flops(eqn.params["body_jaxpr"], while_trips)
+                      + matmul_flops(eqn.params["cond_jaxpr"], while_trips))
         else:
-            total += sum(matmul_flops(j) for j in _sub_jaxprs(eqn))
+            total += sum(matmul_flops(j, while_trips) for j in _sub_jaxprs(eqn))
     return total
 
 
-def count(fn, *args) -> int:
-    """Matmul FLOPs of one call of `fn(*args)` (traced, not run)."""
-    return matmul_flops(jax.make_jaxpr(fn)(*args))
+def count(fn, *args, while_trips: int = 1) -> int:
+    """Matmul FLOPs of one call of `fn(*args)` (traced, not run); each while loop's body counts `while_trips` times."""
+    return matmul_flops(jax.make_jaxpr(fn)(*args), while_trips)
