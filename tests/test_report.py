@@ -15,7 +15,7 @@ import yaml
 from scipy import stats
 
 from mjx_morph.eval.report import build_report
-from mjx_morph.eval.runs import NotARunDir, Run, classify, find_run_dirs
+from mjx_morph.eval.runs import NotARunDir, Run, classify, find_run_dirs, name_variants
 from mjx_morph.eval.stats import TASK_RANGES, mean_curve
 from mjx_morph.unimal.variants import CHANGE_TYPES
 
@@ -270,3 +270,31 @@ def test_classify_main_size_context():
          "joint_axis", "gear"]))]
     classify(mixed)
     assert [r.kind for r in mixed] == ["main", "size", "context", "other", "main"]
+
+
+def test_variants_of_an_architecture_are_reported_apart(tmp_path):
+    """The arms of an A/B study (same task and arch, different training keys) are separate groups named by the keys
+    that differ; seeds of one arm pool; keys a run's config lacks (an older run) and seeds do not make variants."""
+    def run(seed, model=None, precision=None, extra=None):
+        cfg = {"env": {"task": "ft"}, "arch": "rmomo", "seed": seed, "model": {"scale_after_cell": model,
+                                                                               "d_model": 128}}
+        if precision:
+            cfg["precision"] = precision
+        cfg.update(extra or {})
+        return Run(Path(f"r{seed}"), cfg)
+    runs = [run(0), run(1), run(0, True), run(1, True), run(0, True, "bf16"), run(0, extra={"arch": "modumorph"})]
+    name_variants(runs)
+    assert [r.name for r in runs] == ["rmomo, scale_after_cell=default"] * 2 + ["rmomo, scale_after_cell=true"] * 3 \
+        + ["modumorph"]
+    same = [run(0, True, "bf16"), run(1, True, "tf32")]
+    name_variants(same)
+    assert [r.name for r in same] == ["rmomo, precision=bf16", "rmomo, precision=tf32"]
+
+    root = tmp_path / "runs"
+    for name, flag in (("a-s0", None), ("a-s1", None), ("b-s0", True)):
+        d, _ = make_run(root, name, seed=int(name[-1]), evals=("train",))
+        cfg = yaml.safe_load((d / "config.yaml").read_text())
+        cfg["model"] = {"scale_after_cell": flag}
+        (d / "config.yaml").write_text(yaml.safe_dump(cfg))
+    md = build_report([root], tmp_path / "out").read_text()
+    assert "| ft | rmomo, scale_after_cell=default | 2 |" in md and "| ft | rmomo, scale_after_cell=true | 1 |" in md

@@ -7,7 +7,9 @@ Inputs, per run directory (read only, see `mjx_morph.eval.runs`): `config.yaml`,
 of `mjx_morph.eval.evaluate` (any of them but config.yaml may be missing: what needs it is left out and listed in the
 report's "Missing" section).
 
-Runs are grouped by task (`env.name`), architecture (`arch.name`) and kind (`runs.classify`):
+Runs are grouped by task (`env.task`), name (the architecture, plus the training settings that differ among the
+runs of one task and architecture, e.g. "rmomo, scale_after_cell=true": `runs.name_variants`) and kind
+(`runs.classify`):
 - main: all train robots (`num_robots` null; if no run of the task has that, the task's largest num_robots) and
   all context features (`context_features` absent, null or every group); seeds of a task and architecture pool;
 - size: all context features and another `num_robots` (training-set-size runs); in the size figure a full-set
@@ -43,7 +45,7 @@ from ..unimal.variants import CHANGE_TYPES
 from . import plots
 from .document import Document, fmt, fmt_steps, pm, write_csv
 from .params import param_count
-from .runs import CONTEXT_GROUPS, Run, classify, find_run_dirs, read_run
+from .runs import CONTEXT_GROUPS, Run, classify, find_run_dirs, name_variants, read_run
 from .stats import (TASK_RANGES, Stat, change_stats, ci95, mean_curve, normalised_or_nan, robot_difference,
                     seed_average, set_stat, stat_of)
 
@@ -62,9 +64,10 @@ class ReportContext:
     param_counts: dict[str, int] = field(default_factory=dict)   # param_count's memo, for this report only
 
 
-def _order_archs(archs: Iterable[str]) -> list[str]:
-    archs = set(archs)
-    return [a for a in ARCHS if a in archs] + sorted(a for a in archs if a not in ARCHS)
+def _order_archs(names: Iterable[str]) -> list[str]:
+    """Run names in report order: by architecture (the zoo's order), then by variant."""
+    base = lambda n: n.split(",", 1)[0]
+    return sorted(set(names), key=lambda n: (ARCHS.index(base(n)) if base(n) in ARCHS else len(ARCHS), base(n), n))
 
 
 def _order_tasks(tasks: Iterable[str]) -> list[str]:
@@ -89,10 +92,10 @@ def _runs_table(doc: Document, ctx: ReportContext) -> None:
     for r in runs:
         label = r.context_label
         evals = ", ".join(sorted(r.evals)) or "none"
-        rows.append([_display(r.path), r.task, r.arch, r.seed, r.kind, r.num_robots if r.num_robots else "all", label,
+        rows.append([_display(r.path), r.task, r.name, r.seed, r.kind, r.num_robots if r.num_robots else "all", label,
                      r.iterations, r.final_steps, r.wall_hours(), r.hours_per_100m(), r.mean_sps(),
                      r.final_train_return(), evals])
-        md.append([f"`{_display(r.path)}`", r.task, r.arch, r.seed, r.kind, r.num_robots or "all", label, r.iterations,
+        md.append([f"`{_display(r.path)}`", r.task, r.name, r.seed, r.kind, r.num_robots or "all", label, r.iterations,
                    fmt_steps(r.final_steps), fmt(r.wall_hours(), 2), fmt(r.hours_per_100m(), 2), fmt(r.mean_sps(), 0),
                    fmt(r.final_train_return()), evals])
     doc.table("Runs", "runs", header, rows,
@@ -356,8 +359,8 @@ def _train_size(doc: Document, ctx: ReportContext) -> None:
                                "and a num_robots other than the main runs'")
             continue
         series = {}
-        for a in _order_archs(r.arch for r in cand):
-            mine = [r for r in cand if r.arch == a]
+        for a in _order_archs(r.name for r in cand):
+            mine = [r for r in cand if r.name == a]
             explicit = {r.num_robots for r in mine if r.num_robots}
             by: dict[int, list[Run]] = defaultdict(list)
             for r in mine:       # a full-set run stands at its robot count where no run names that count
@@ -398,12 +401,12 @@ def _context_features(doc: Document, ctx: ReportContext) -> None:
         labels = sorted({r.context_label for r in ctx_runs},
                         key=lambda s: ([CONTEXT_GROUPS.index(g) if g in CONTEXT_GROUPS else 99
                                         for g in s.split("+")], s))
-        archs = _order_archs(r.arch for r in ctx_runs)
+        archs = _order_archs(r.name for r in ctx_runs)
         series, refs = {}, {}
         for a in archs:
             ms, cs = [], []
             for lab in labels:
-                sel = [r for r in ctx_runs if r.arch == a and r.context_label == lab]
+                sel = [r for r in ctx_runs if r.name == a and r.context_label == lab]
                 s = set_stat(sel, "test", t) if sel else None
                 ms.append(s.mean if s else np.nan)
                 cs.append(s.ci if s else np.nan)
@@ -435,15 +438,15 @@ def _params_table(doc: Document, ctx: ReportContext) -> None:
     runs = ctx.runs
     rows, seen = [], set()
     for r in runs:
-        if (r.task, r.arch) in seen:
+        if (r.task, r.name) in seen:
             continue
-        seen.add((r.task, r.arch))
+        seen.add((r.task, r.name))
         try:
             n = param_count(r.cfg, ctx.param_counts)
         except Exception as e:  # noqa: BLE001 - a table cell, not a reason to fail the report
-            doc.missing.append(f"parameter count of {r.arch} on {r.task}: {type(e).__name__}: {str(e)[:200]}")
+            doc.missing.append(f"parameter count of {r.name} on {r.task}: {type(e).__name__}: {str(e)[:200]}")
             continue
-        rows.append([r.task, r.arch, n])
+        rows.append([r.task, r.name, n])
     order_t, order_a = _order_tasks(x[0] for x in rows), _order_archs(x[1] for x in rows)
     rows.sort(key=lambda x: (order_t.index(x[0]), order_a.index(x[1])))
     if rows:
@@ -505,6 +508,7 @@ def build_report(run_dirs: Sequence[str | Path], out: str | Path,
         except (OSError, ValueError, yaml.YAMLError) as e:
             doc.missing.append(f"`{_display(d)}`: left out ({e})")
     classify(runs)
+    name_variants(runs)
     for r in runs:
         for n in r.notes:
             doc.missing.append(f"`{_display(r.path)}`: {n}")
@@ -517,8 +521,8 @@ def build_report(run_dirs: Sequence[str | Path], out: str | Path,
             doc.missing.append(f"`{_display(r.path)}`: context_features set and num_robots {r.num_robots} differs from "
                                "the task's main runs: in no figure")
     tasks = _order_tasks(r.task for r in runs)
-    main = {t: {a: [r for r in runs if r.task == t and r.arch == a and r.kind == "main"]
-                for a in _order_archs(r.arch for r in runs if r.task == t and r.kind == "main")} for t in tasks}
+    main = {t: {a: [r for r in runs if r.task == t and r.name == a and r.kind == "main"]
+                for a in _order_archs(r.name for r in runs if r.task == t and r.kind == "main")} for t in tasks}
     ctx = ReportContext(runs, tasks, main, tuple(compare) if compare else DEFAULT_COMPARE)
     for heading, section in SECTIONS:
         doc.section(heading)

@@ -3,6 +3,8 @@
     dirs = find_run_dirs(["runs/studies/train_size"])       # run directories at or below the given paths
     runs = [read_run(d) for d in dirs]                      # config.yaml, metrics.csv, eval/<tag>.json
     classify(runs)                                          # run.kind: main | size | context | other
+    name_variants(runs)                                     # run.name: arch, plus the settings that tell apart
+                                                            # runs of one task and arch (an A/B study's arms)
 
 Per run directory (read only): `config.yaml` (required), `metrics.csv` of `mjx_morph.ppo.loop` and `eval/<tag>.json`
 of `mjx_morph.eval.evaluate`; problems with the optional files are kept in `Run.notes` rather than raised.
@@ -89,6 +91,13 @@ class Run:
     evals: dict[str, dict] = field(default_factory=dict)
     notes: list[str] = field(default_factory=list)      # problems reading this run
     kind: str = "main"                                  # main | size | context | other: see classify()
+    variant: str = ""                                   # what sets this run apart from others of its task and
+                                                        # arch (name_variants), e.g. "scale_after_cell=true"
+
+    @property
+    def name(self) -> str:
+        """The group the report pools seeds over: the architecture, plus its variant if any."""
+        return f"{self.arch}, {self.variant}" if self.variant else self.arch
 
     @property
     def task(self) -> str:
@@ -218,3 +227,43 @@ def classify(runs: Sequence[Run]) -> None:
                 r.kind = "main" if r.num_robots == level else "size"
             else:
                 r.kind = "context" if r.num_robots == level else "other"
+
+
+#: config keys (dotted, or prefixes) that make a variant of an architecture: how it was trained and simulated
+VARIANT_KEYS = ("model", "ppo", "precision", "env")
+#: ...except these: they have their own place in the report (task, context features) or say nothing of training
+NOT_VARIANT_KEYS = ("env.task", "env.context_features")
+
+
+def _flat(d: dict, prefix: str = "") -> dict[str, object]:
+    out = {}
+    for k, v in d.items():
+        key = f"{prefix}{k}"
+        if isinstance(v, dict):
+            out.update(_flat(v, key + "."))
+        else:
+            out[key] = tuple(v) if isinstance(v, list) else v
+    return out
+
+
+def _value(v) -> str:
+    if v is None:
+        return "default"       # a model option left to the architecture's own value
+    return str(v).lower() if isinstance(v, bool) else str(v)
+
+
+def name_variants(runs: Sequence[Run]) -> None:
+    """Set each run's `variant`: the training keys (VARIANT_KEYS) whose values differ among the runs of its task and
+    architecture, as "key=value" with the key's last part (e.g. "scale_after_cell=true, precision=bf16"); "" when all
+    runs of the group agree. A key missing from some run's config (a run older than the key) is not compared."""
+    groups: dict[tuple[str, str], list[Run]] = {}
+    for r in runs:
+        groups.setdefault((r.task, r.arch), []).append(r)
+    in_scope = lambda k: (any(k == p or k.startswith(p + ".") for p in VARIANT_KEYS)
+                          and not any(k == p or k.startswith(p + ".") for p in NOT_VARIANT_KEYS))
+    for rs in groups.values():
+        flats = [_flat(r.cfg) for r in rs]
+        keys = sorted(k for k in set.intersection(*(set(f) for f in flats)) if in_scope(k)
+                      and len({repr(f[k]) for f in flats}) > 1)
+        for r, f in zip(rs, flats):
+            r.variant = ", ".join(f"{k.rsplit('.', 1)[-1]}={_value(f[k])}" for k in keys)
