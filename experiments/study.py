@@ -10,6 +10,9 @@ A study file lists `runs` (name -> overrides of experiments.run), and optionally
 Run directories: <out>/<study>/<env>-<arch>-<run>-s<seed> (default out: runs/studies). Each run is an ordinary
 `experiments.run` run: rerunning the study resumes unfinished runs (finished ones are not retrained; their
 evaluation runs again). Afterwards: python -m experiments.report runs=[<out>/<study>] out=<dir>.
+
+On several hosts (the same command on each, with the distributed settings of experiments.run after --: README,
+"Several hosts") every process trains each run, process 0 alone evaluates it while the others wait.
 """
 from __future__ import annotations
 
@@ -22,7 +25,7 @@ import yaml
 from omegaconf import MISSING
 
 from mjx_morph.eval.evaluate import evaluate_run
-from mjx_morph.run import CONF_DIR, compose_run_config, register, train, use_compile_cache
+from mjx_morph.run import CONF_DIR, compose_run_config, distributed, register, train, use_compile_cache
 from mjx_morph.sim.env import EnvConfig
 
 from . import cli
@@ -79,7 +82,9 @@ def run_study(c: StudyConfig) -> None:
     for i, ((d, _, sets), cfg) in enumerate(zip(runs, configs)):
         print(f"[study] {i + 1}/{len(runs)}: {d}", flush=True)
         train(cfg)
-        evaluate_run(d, sets, episodes=c.episodes)
+        if distributed.is_main():
+            evaluate_run(d, sets, episodes=c.episodes)
+        distributed.barrier("evaluated")
     print(f"[study] done; report: python -m experiments.report runs=[{Path(c.out) / c.name}] out=<dir>")
 
 

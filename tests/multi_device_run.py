@@ -16,10 +16,18 @@ from toy_env import ToyEnv
 TINY = dict(d_model=16, num_layers=1, num_heads=2, ffn_dim=32)
 
 
-def run(arch: str, devices: int, iters: int = 3):
-    cfg = PPOConfig(num_envs=8, rollout_len=16, window=8, burn_in=4, minibatch_size=32, epochs=2)
+def ppo_config() -> PPOConfig:
+    return PPOConfig(num_envs=8, rollout_len=16, window=8, burn_in=4, minibatch_size=32, epochs=2)
+
+
+def toy_trainer(arch: str, devices: int | None, total_steps: int = 8 * 16 * 10) -> Trainer:
+    """The tiny config on the ToyEnv (also tests/multi_process_run.py and tests/test_multihost.py)."""
     model = make_model(arch, hfield=False, decoder_dims=[], precision="fp32", **TINY)
-    trainer = Trainer(ToyEnv(), model, cfg, 8 * 16 * 10, fast_compile=True, devices=devices)
+    return Trainer(ToyEnv(), model, ppo_config(), total_steps, fast_compile=True, devices=devices)
+
+
+def run(arch: str, devices: int, iters: int = 3):
+    trainer = toy_trainer(arch, devices)
     ts = trainer.init(jax.random.PRNGKey(0))
     rows = []
     for _ in range(iters):

@@ -30,6 +30,8 @@ sharded over a one-axis mesh ("env"), everything else (parameters, optimiser, no
 replicated, and the jitted functions keep that layout. The program is the same global program: XLA partitions it,
 so minibatches are drawn from all envs, gradients, the KL stop, the normalisers and the sampler see every device's
 data, and N devices compute what one device computes for the same global batch (up to the order of summation).
+Several processes (hosts, `mjx_morph/run/distributed.py`) are the same: the mesh spans every process's devices, each
+process steps the envs of its own, and the metrics come out replicated, so every process can read them.
 """
 from __future__ import annotations
 
@@ -163,15 +165,16 @@ class Trainer:
         opts = dict(compiler_options=FAST_COMPILE) if fast_compile else {}
         if self.mesh is None:
             jit = lambda f, **_: jax.jit(f, **opts)
-            self._state_sharding = bt = None
+            self._state_sharding = bt = rep = None
         else:
             jit = lambda f, out: jax.jit(f, out_shardings=out, **opts)
             self._state_sharding = state_sharding(self.mesh)
             bt = NamedSharding(self.mesh, P(None, "env"))     # every batch field is time-major (time, env, ...)
+            rep = NamedSharding(self.mesh, P())               # metrics: on every device, so every process reads them
         st = self._state_sharding
-        self.iteration = jit(self._iteration, out=(st, None))
-        self.rollout = jit(self._rollout, out=(st, bt, None))
-        self.update = jit(self._update, out=(st, None))
+        self.iteration = jit(self._iteration, out=(st, rep))
+        self.rollout = jit(self._rollout, out=(st, bt, rep))
+        self.update = jit(self._update, out=(st, rep))
         self.evaluate_windows = jit(self._evaluate_windows, out=None)
         self._init = jit(self._init_state, out=st)
 
@@ -371,17 +374,27 @@ class Trainer:
 
 # ---------------------------------------------------------------------- several devices
 def device_mesh(devices: int | None, num_envs: int) -> Mesh | None:
-    """The one-axis mesh ("env") over the first `devices` devices (None: all visible ones); None for one device."""
+    """The one-axis mesh ("env") over `devices` devices (None: all visible ones); None for one device. With several
+    processes (mjx_morph/run/distributed.py) the devices are those of every process, an equal share of each: every
+    process steps the envs of its own devices."""
     avail = jax.devices()
+    procs = jax.process_count()
     n = len(avail) if devices is None else int(devices)
     if not 1 <= n <= len(avail):
-        raise ValueError(f"devices={devices}: expected 1 to {len(avail)} (the visible {avail[0].platform} devices) "
-                         "or null for all")
+        raise ValueError(f"devices={devices}: expected 1 to {len(avail)} (the visible {avail[0].platform} devices"
+                         + (f" of {procs} processes" if procs > 1 else "") + ") or null for all")
+    if n % procs:
+        raise ValueError(f"devices={devices}: expected a multiple of the {procs} processes (each process steps the "
+                         "envs of an equal share of the devices) or null for all")
     if n == 1:
         return None
     if num_envs % n:
-        raise ValueError(f"ppo.num_envs={num_envs} is not a multiple of devices={n}: each device steps an equal "
-                         "share of the envs")
+        raise ValueError(f"ppo.num_envs={num_envs} is not a multiple of devices={n}"
+                         + (f" ({procs} processes)" if procs > 1 else "") + ": each device steps an equal share "
+                         "of the envs")
+    if procs > 1:
+        per = n // procs
+        avail = [d for p in range(procs) for d in [d for d in avail if d.process_index == p][:per]]
     return Mesh(np.asarray(avail[:n]), ("env",))
 
 

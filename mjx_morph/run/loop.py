@@ -12,6 +12,10 @@ early with a checkpoint, `stop_at` ends the run at that iteration for good (a re
 Callbacks (`Callback`): `on_start(loop)` once, `on_iteration(loop, state, row)` after every iteration with the
 metrics row, `on_stop(loop, state, reason)` once at the end, reason "done" (the invocation's last iteration ran),
 "time_limit", "interrupted" or "error". Only `run_iteration` touches the device; everything here is plain Python.
+
+Several processes (hosts; `mjx_morph/run/distributed.py`, started first thing in `train`): every process runs this
+loop on its share of the devices and takes part in checkpoints; only process 0 prints, logs, draws and shows the
+progress bar, and its clock decides the time limit. Ctrl-C saves no checkpoint then (the others could not join it).
 """
 from __future__ import annotations
 
@@ -24,8 +28,10 @@ from typing import Any, Sequence
 import jax
 
 from ..ppo.trainer import Trainer, TrainState
+from . import distributed
 from .build import Experiment, build
 from .config import FREE, IDENTITY, RunConfig, to_dict, to_schema
+from .distributed import print_main as print    # with several processes only process 0 prints
 from .figures import learning_curve
 from .run_dir import RunDir, RunDirError
 
@@ -67,7 +73,7 @@ class ProgressBar(Callback):
     def on_start(self, loop):
         from tqdm import tqdm
         self.bar = tqdm(total=loop.num_iters, initial=loop.start, unit="it", dynamic_ncols=True, file=sys.stderr) \
-            if loop.start < loop.num_iters else None
+            if loop.start < loop.num_iters and distributed.is_main() else None
 
     def on_iteration(self, loop, state, row):
         if self.bar is not None:
@@ -93,6 +99,8 @@ class Checkpoints(Callback):
 
     def on_stop(self, loop, state, reason):
         it = int(state.iteration)
+        if reason == "interrupted" and distributed.several():
+            return          # every process would have to save, and the others were not interrupted with this one
         if reason in ("time_limit", "interrupted") and it > (loop.run.latest_step() or 0):
             loop.run.save(it, state)
 
@@ -101,7 +109,7 @@ class Summary(Callback):
     """At the end of a finished invocation: the learning curve figure and a closing line."""
 
     def on_stop(self, loop, state, reason):
-        if reason != "done":
+        if reason != "done" or not distributed.is_main():
             return
         rows = loop.run.read_metrics()
         exp = loop.experiment
@@ -145,6 +153,7 @@ def train(cfg: Any, experiment: Experiment | None = None, callbacks: Sequence[Ca
     """Train (or resume) the run of `cfg`; returns its run directory."""
     cfg = to_schema(cfg)
     cfg.check()
+    distributed.initialize(cfg)         # several processes: before any JAX computation (the device list)
     run = RunDir(cfg.run_dir or cfg.default_run_dir(), to_dict(cfg), IDENTITY, FREE, tuple(cfg.allow_changes))
     exp = experiment if experiment is not None else build(cfg)     # validates the robots, the model, the geometry
     trainer = exp.trainer
@@ -152,7 +161,9 @@ def train(cfg: Any, experiment: Experiment | None = None, callbacks: Sequence[Ca
     print(f"[mjx_morph] {exp.model.arch} on {cfg.env.task}: {exp.env.num_robots} robots ({exp.robot_set}), "
           f"{exp.model.num_params():,} parameters, {pc.num_envs} envs x {pc.rollout_len} steps = "
           f"{pc.steps_per_iter:,} steps/iteration, {trainer.num_iters} iterations on {trainer.num_devices} "
-          f"{jax.devices()[0].platform} device(s); run dir {run.path}", flush=True)
+          f"{jax.devices()[0].platform} device(s)"
+          + (f" of {jax.process_count()} processes" if distributed.several() else "") + f"; run dir {run.path}",
+          flush=True)
     t0 = time.perf_counter()
     print("[mjx_morph] compiling and running the initial state (env resets, parameter init)...", end=" ", flush=True)
     state = jax.block_until_ready(trainer.init(jax.random.PRNGKey(cfg.seed)))
@@ -187,7 +198,8 @@ def train(cfg: Any, experiment: Experiment | None = None, callbacks: Sequence[Ca
     it, slowest, reason = start, 0.0, "error"
     try:
         while it < stop:
-            if deadline is not None and it > start and time.perf_counter() + 1.5 * slowest > deadline:
+            if deadline is not None and it > start and distributed.agree(
+                    time.perf_counter() + 1.5 * slowest > deadline):
                 reason = "time_limit"
                 break
             if it == start:
@@ -212,6 +224,8 @@ def train(cfg: Any, experiment: Experiment | None = None, callbacks: Sequence[Ca
         run.close()
         if reason in ("time_limit", "interrupted"):
             what = "time limit reached" if reason == "time_limit" else "interrupted"
-            print(f"\n[mjx_morph] {what} at iteration {int(state.iteration)}; checkpoint saved. "
+            saved = "checkpoint saved" if reason == "time_limit" or not distributed.several() else \
+                "no checkpoint saved (several processes: a rerun resumes from the last periodic one)"
+            print(f"\n[mjx_morph] {what} at iteration {int(state.iteration)}; {saved}. "
                   f"Rerun the same command to resume.", file=sys.stderr, flush=True)
     return run.path
