@@ -11,6 +11,9 @@ Run directories: <out>/<study>/<env>-<arch>-<run>-s<seed> (default out: runs/stu
 `experiments.run` run: rerunning the study resumes unfinished runs (finished ones are not retrained; their
 evaluation runs again). The seeds of a run train side by side in one program (`seeds=[...]` of experiments.run; those
 at the same checkpoint together), unless side_by_side=false. Afterwards: python -m experiments.report runs=[<out>/<study>] out=<dir>.
+
+On several hosts (the same command on each, with the distributed settings of experiments.run after --: README,
+"Several hosts") every process trains each run, process 0 alone evaluates it while the others wait.
 """
 from __future__ import annotations
 
@@ -23,7 +26,7 @@ import yaml
 from omegaconf import MISSING
 
 from mjx_morph.eval.evaluate import evaluate_run
-from mjx_morph.run import CONF_DIR, RunDir, compose_run_config, register, train, use_compile_cache
+from mjx_morph.run import CONF_DIR, RunDir, compose_run_config, distributed, register, train, use_compile_cache
 from mjx_morph.sim.env import EnvConfig
 
 from . import cli
@@ -113,8 +116,10 @@ def run_study(c: StudyConfig) -> None:
     for i, (members, overrides) in enumerate(todo):
         print(f"[study] {i + 1}/{len(todo)}: {', '.join(str(r.dir) for r in members)}", flush=True)
         train(compose_run_config(overrides))
-        for r in members:
-            evaluate_run(r.dir, r.sets, episodes=c.episodes)
+        if distributed.is_main():
+            for r in members:
+                evaluate_run(r.dir, r.sets, episodes=c.episodes)
+        distributed.barrier("evaluated")
     print(f"[study] done; report: python -m experiments.report runs=[{Path(c.out) / c.name}] out=<dir>")
 
 

@@ -10,17 +10,25 @@ import numpy as np
 
 from mjx_morph.nets import make_model
 from mjx_morph.ppo.config import PPOConfig
-from mjx_morph.ppo.trainer import Trainer
+from mjx_morph.ppo.trainer import Trainer, seed_keys, seed_state
 from toy_env import ToyEnv
 
 TINY = dict(d_model=16, num_layers=1, num_heads=2, ffn_dim=32)
 
 
-def run(arch: str, devices: int, iters: int = 3):
-    cfg = PPOConfig(num_envs=8, rollout_len=16, window=8, burn_in=4, minibatch_size=32, epochs=2)
+def ppo_config() -> PPOConfig:
+    return PPOConfig(num_envs=8, rollout_len=16, window=8, burn_in=4, minibatch_size=32, epochs=2)
+
+
+def toy_trainer(arch: str, devices: int | None, total_steps: int = 8 * 16 * 10, seeds: int | None = None) -> Trainer:
+    """The tiny config on the ToyEnv (also tests/multi_process_run.py and tests/test_multihost.py)."""
     model = make_model(arch, hfield=False, decoder_dims=[], precision="fp32", **TINY)
-    trainer = Trainer(ToyEnv(), model, cfg, 8 * 16 * 10, fast_compile=True, devices=devices)
-    ts = trainer.init(jax.random.PRNGKey(0))
+    return Trainer(ToyEnv(), model, ppo_config(), total_steps, fast_compile=True, devices=devices, seeds=seeds)
+
+
+def run(arch: str, devices: int, iters: int = 3, seed: int = 0):
+    trainer = toy_trainer(arch, devices)
+    ts = trainer.init(jax.random.PRNGKey(seed))
     rows = []
     for _ in range(iters):
         ts, m = trainer.iteration(ts)
@@ -42,6 +50,17 @@ def main(n: int) -> None:
         out[arch] = {"param_diff": diff, "env_diff": env_diff, "shards": [s1, s_n],
                      "minibatches": [r["minibatches"] for r in rows1], "minibatches_n": [r["minibatches"] for r in rows_n],
                      "loss": [r["loss"] for r in rows1], "loss_n": [r["loss"] for r in rows_n]}
+        if arch == "metamorph":      # two seeds side by side, spread over the devices (a 2 x n/2 mesh)
+            trainer = toy_trainer(arch, n, seeds=2)
+            ts = trainer.init(seed_keys([0, 1]))
+            for _ in range(3):
+                ts, _ = trainer.iteration(ts)
+            alone = [one, run(arch, 1, seed=1)[0]]
+            out["seeds"] = {"mesh": dict(trainer.mesh.shape), "shards": len(ts.first.sharding.device_set),
+                            "param_diff": max(float(np.abs(np.asarray(a) - np.asarray(b)).max())
+                                              for i in range(2) for a, b in
+                                              zip(jax.tree.leaves(seed_state(ts, i).params),
+                                                  jax.tree.leaves(alone[i].params)))}
     print(json.dumps(out))
 
 

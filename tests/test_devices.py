@@ -40,6 +40,13 @@ def test_four_devices_equal_one_device(four_devices, arch):
     assert r["param_diff"] < PARAM_TOLERANCE, r
 
 
+def test_seeds_spread_over_devices(four_devices):
+    """seeds=2 on 4 devices: a ("seed", "env") mesh of 2 x 2, each seed equal to that seed alone on one device."""
+    r = four_devices["seeds"]
+    assert r["mesh"] == {"seed": 2, "env": 2} and r["shards"] == 4
+    assert r["param_diff"] < PARAM_TOLERANCE, r
+
+
 def test_device_count_errors():
     with pytest.raises(ValueError, match="devices=3: expected 1 to 1"):
         device_mesh(3, 8)

@@ -36,6 +36,8 @@ single-seed function under `jax.vmap`, so seed i computes what a run of seed i a
 independent: the KL stop is per seed (the update loop runs while some seed still updates; a stopped seed's
 parameters no longer change). With several devices the mesh is ("seed", "env"): the seed axis is spread over
 gcd(S, devices) devices (no communication between them) and each seed's envs over the rest.
+Several processes (hosts, `mjx_morph/run/distributed.py`) are the same: the mesh spans every process's devices, each
+process steps the envs of its own, and the metrics come out replicated, so every process can read them.
 """
 from __future__ import annotations
 
@@ -177,17 +179,18 @@ class Trainer:
         seeded = self.num_seeds is not None
         if self.mesh is None:
             jit = lambda f, **_: jax.jit(f, **opts)
-            self._state_sharding = bt = None
+            self._state_sharding = bt = rep = None
         else:
             jit = lambda f, out: jax.jit(f, out_shardings=out, **opts)
             self._state_sharding = state_sharding(self.mesh, seeded)
             # every batch field is time-major (time, env, ...)
             bt = NamedSharding(self.mesh, P("seed", None, "env") if seeded else P(None, "env"))
+            rep = NamedSharding(self.mesh, P())               # metrics: on every device, so every process reads them
         st = self._state_sharding
         each = jax.vmap if seeded else (lambda f: f)
-        self.iteration = jit(each(self._iteration), out=(st, None))
-        self.rollout = jit(each(self._rollout), out=(st, bt, None))
-        self.update = jit(each(self._update), out=(st, None))
+        self.iteration = jit(each(self._iteration), out=(st, rep))
+        self.rollout = jit(each(self._rollout), out=(st, bt, rep))
+        self.update = jit(each(self._update), out=(st, rep))
         self.evaluate_windows = jit(each(self._evaluate_windows), out=None)
         self._init = jit(each(self._init_state), out=st)
 
@@ -403,20 +406,30 @@ def stack_seeds(states) -> TrainState:
 def device_mesh(devices: int | None, num_envs: int, seeds: int | None = None) -> Mesh | None:
     """The mesh ("seed", "env") over the first `devices` devices (None: all visible ones); None for one device.
     With `seeds` runs side by side, gcd(seeds, devices) devices split the seeds (no communication between them)
-    and each seed's envs are sharded over the rest; one run uses a seed axis of size 1."""
+    and each seed's envs are sharded over the rest; one run uses a seed axis of size 1. With several processes
+    (mjx_morph/run/distributed.py) the devices are those of every process, an equal share of each: every process
+    steps the envs of its own devices."""
     avail = jax.devices()
+    procs = jax.process_count()
     n = len(avail) if devices is None else int(devices)
     if not 1 <= n <= len(avail):
-        raise ValueError(f"devices={devices}: expected 1 to {len(avail)} (the visible {avail[0].platform} devices) "
-                         "or null for all")
+        raise ValueError(f"devices={devices}: expected 1 to {len(avail)} (the visible {avail[0].platform} devices"
+                         + (f" of {procs} processes" if procs > 1 else "") + ") or null for all")
+    if n % procs:
+        raise ValueError(f"devices={devices}: expected a multiple of the {procs} processes (each process steps the "
+                         "envs of an equal share of the devices) or null for all")
     if n == 1:
         return None
     by_seed = math.gcd(seeds or 1, n)
     by_env = n // by_seed
     if num_envs % by_env:
         raise ValueError(f"ppo.num_envs={num_envs} is not a multiple of {by_env}, the devices each run's envs are "
-                         f"spread over (devices={n}" + (f", seeds={seeds}" if seeds else "") + "): each device steps "
-                         "an equal share of the envs")
+                         f"spread over (devices={n}" + (f", seeds={seeds}" if seeds else "")
+                         + (f", {procs} processes" if procs > 1 else "") + "): each device steps an equal share of "
+                         "the envs")
+    if procs > 1:
+        per = n // procs
+        avail = [d for p in range(procs) for d in [d for d in avail if d.process_index == p][:per]]
     return Mesh(np.asarray(avail[:n]).reshape(by_seed, by_env), ("seed", "env"))
 
 

@@ -70,7 +70,12 @@ class RunConfig:
     time_limit_min: Optional[float] = None   # end this invocation after about N minutes (with a checkpoint)
     checkpoint_every: int = 50          # iterations between Orbax checkpoints (and always at the end)
     devices: Optional[int] = None       # devices the envs are sharded over (data parallel, same global batch);
-                                        # None: every visible device
+                                        # None: every visible device (of every process)
+    coordinator: Optional[str] = None   # several processes (hosts): "host:port" of process 0, or auto (JAX detects
+                                        # SLURM, Open MPI, TPU); None: $MJX_MORPH_COORDINATOR, else one process
+                                        # (mjx_morph/run/distributed.py)
+    num_processes: Optional[int] = None  # processes of the run (None: $MJX_MORPH_NUM_PROCESSES)
+    process_id: Optional[int] = None    # this process, 0 .. num_processes - 1 (None: $MJX_MORPH_PROCESS_ID)
     phase_timing: bool = True           # rollout and update as two jitted calls, to log env steps/s per phase
     fast_compile: bool = False          # XLA CPU optimisations off: faster compiles, slower steps (tests, smoke)
     progress: bool = True               # progress bar with steps/s and ETA
@@ -107,8 +112,8 @@ class RunConfig:
 IDENTITY = ("env.task", "env.context_features", "arch", "model", "robots", "robots_root", "num_robots", "seed",
             "ppo.num_envs", "ppo.rollout_len", "ppo.window", "ppo.burn_in", "ppo.minibatch_size", "ppo.sampling")
 #: keys of the loop alone, which a resume may change freely; every other key changes only through allow_changes
-FREE = ("run_dir", "devices", "seeds", "stop_after", "stop_at", "time_limit_min", "checkpoint_every", "phase_timing",
-        "fast_compile", "progress",
+FREE = ("run_dir", "devices", "seeds", "coordinator", "num_processes", "process_id", "stop_after", "stop_at",
+        "time_limit_min", "checkpoint_every", "phase_timing", "fast_compile", "progress",
         "compile_cache", "allow_changes", "resume_step", "allow_outside_design_space")
 
 

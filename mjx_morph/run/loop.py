@@ -20,6 +20,10 @@ state), and each seed is an ordinary run with its own run directory (`run_dir` w
 runs/<task>-<arch>-s<seed>), config.yaml (with `seed` = that seed, as if trained alone), metrics and checkpoints: it
 can be resumed, evaluated or reported alone. The callbacks are called once per seed (`loop.member`), with the state
 of all seeds; `loop.own(state)` is that seed's.
+
+Several processes (hosts; `mjx_morph/run/distributed.py`, started first thing in `train`): every process runs this
+loop on its share of the devices and takes part in checkpoints; only process 0 prints, logs, draws and shows the
+progress bar, and its clock decides the time limit. Ctrl-C saves no checkpoint then (the others could not join it).
 """
 from __future__ import annotations
 
@@ -34,8 +38,10 @@ import jax
 import numpy as np
 
 from ..ppo.trainer import Trainer, TrainState, seed_keys, seed_state, stack_seeds
+from . import distributed
 from .build import Experiment, build
 from .config import FREE, IDENTITY, RunConfig, to_dict, to_schema
+from .distributed import print_main as print    # with several processes only process 0 prints
 from .figures import learning_curve
 from .run_dir import RunDir, RunDirError
 
@@ -86,7 +92,7 @@ class ProgressBar(Callback):
         if loop.member == 0:
             self.returns = []
             self.bar = tqdm(total=loop.num_iters, initial=loop.start, unit="it", dynamic_ncols=True,
-                            file=sys.stderr) if loop.start < loop.num_iters else None
+                            file=sys.stderr) if loop.start < loop.num_iters and distributed.is_main() else None
 
     def on_iteration(self, loop, state, row):
         if self.bar is None:
@@ -118,6 +124,8 @@ class Checkpoints(Callback):
     def on_stop(self, loop, state, reason):
         state = loop.own(state)
         it = int(state.iteration)
+        if reason == "interrupted" and distributed.several():
+            return          # every process would have to save, and the others were not interrupted with this one
         if reason in ("time_limit", "interrupted") and it > (loop.run.latest_step() or 0):
             loop.run.save(it, state)
 
@@ -126,7 +134,7 @@ class Summary(Callback):
     """At the end of a finished invocation: the learning curve figure and a closing line."""
 
     def on_stop(self, loop, state, reason):
-        if reason != "done":
+        if reason != "done" or not distributed.is_main():
             return
         rows = loop.run.read_metrics()
         exp = loop.experiment
@@ -201,6 +209,7 @@ def train(cfg: Any, experiment: Experiment | None = None, callbacks: Sequence[Ca
     directories)."""
     cfg = to_schema(cfg)
     cfg.check()
+    distributed.initialize(cfg)         # several processes: before any JAX computation (the device list)
     members = member_configs(cfg)
     seeded = cfg.seeds is not None
     runs = [RunDir(m.run_dir or m.default_run_dir(), to_dict(m), IDENTITY, FREE, tuple(m.allow_changes))
@@ -218,6 +227,7 @@ def train(cfg: Any, experiment: Experiment | None = None, callbacks: Sequence[Ca
           f"{exp.model.num_params():,} parameters, {pc.num_envs} envs x {pc.rollout_len} steps = "
           f"{pc.steps_per_iter:,} steps/iteration, {trainer.num_iters} iterations on {trainer.num_devices} "
           f"{jax.devices()[0].platform} device(s)"
+          + (f" of {jax.process_count()} processes" if distributed.several() else "")
           + (f"; seeds {list(cfg.seeds)} side by side, run dirs {', '.join(str(r.path) for r in runs)}" if seeded
              else f"; run dir {runs[0].path}"), flush=True)
     t0 = time.perf_counter()
@@ -261,7 +271,8 @@ def train(cfg: Any, experiment: Experiment | None = None, callbacks: Sequence[Ca
     it, slowest, reason = start, 0.0, "error"
     try:
         while it < stop:
-            if deadline is not None and it > start and time.perf_counter() + 1.5 * slowest > deadline:
+            if deadline is not None and it > start and distributed.agree(
+                    time.perf_counter() + 1.5 * slowest > deadline):
                 reason = "time_limit"
                 break
             if it == start:
@@ -288,6 +299,8 @@ def train(cfg: Any, experiment: Experiment | None = None, callbacks: Sequence[Ca
             loop.run.close()
         if reason in ("time_limit", "interrupted"):
             what = "time limit reached" if reason == "time_limit" else "interrupted"
-            print(f"\n[mjx_morph] {what} at iteration {it}; checkpoint saved. "
+            saved = "checkpoint saved" if reason == "time_limit" or not distributed.several() else \
+                "no checkpoint saved (several processes: a rerun resumes from the last periodic one)"
+            print(f"\n[mjx_morph] {what} at iteration {it}; {saved}. "
                   f"Rerun the same command to resume.", file=sys.stderr, flush=True)
     return [run.path for run in runs] if seeded else runs[0].path

@@ -23,6 +23,11 @@ Metric rows of iterations after the restored checkpoint (an interrupted run's la
 a run that crashed before its first checkpoint) are moved to `metrics.csv.orphaned` rather than deleted and are
 logged again by the resumed run; TensorBoard's events are rebuilt from the rows kept (the old ones move to
 `tb.orphaned/`), so neither shows an iteration twice.
+
+Several processes (`mjx_morph/run/distributed.py`): every process opens the run directory and takes part in saving
+and restoring checkpoints (Orbax writes and reads each process's shards of the global arrays); only process 0
+writes config.yaml, metrics, TensorBoard and moves files. A reader (`RunDir(path)` without a config) restores on
+its own process, so process 0 alone can load a checkpoint (evaluation) while the others wait.
 """
 from __future__ import annotations
 
@@ -38,6 +43,8 @@ import numpy as np
 import orbax.checkpoint as ocp
 import yaml
 from tensorboardX import SummaryWriter
+
+from .distributed import barrier, is_main, several
 
 
 class RunDirError(RuntimeError):
@@ -75,6 +82,13 @@ def _number(text: str | None) -> int | float:
         return float(text)
 
 
+def _write_atomic(path: Path, text: str) -> None:
+    """Write a file whole or not at all (other processes may read it meanwhile)."""
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(text)
+    tmp.replace(path)
+
+
 def _matches(key: str, prefixes) -> bool:
     return any(key == p or key.startswith(p + ".") for p in prefixes)
 
@@ -88,6 +102,7 @@ class RunDir:
         checked."""
         self.path = Path(path).resolve()
         self.config = dict(config or {})
+        self._reader = config is None
         self._manager = None
         self._tb = None                  # TensorBoard writer, opened with the first logged row
         self.changes: list[str] = []     # accepted changes of this resume, "key: old -> new"
@@ -119,18 +134,21 @@ class RunDir:
         self.changes = changed
 
     def create(self) -> None:
-        """Make the directory and write config.yaml (a new run), or record this resume's accepted changes."""
+        """Make the directory and write config.yaml (a new run), or record this resume's accepted changes
+        (process 0; the others write nothing)."""
+        if not is_main():
+            return
         cfg_file = self.path / "config.yaml"
         try:
             self.path.mkdir(parents=True, exist_ok=True)
             if not cfg_file.exists():
-                cfg_file.write_text(yaml.safe_dump(self.config, sort_keys=False))
+                _write_atomic(cfg_file, yaml.safe_dump(self.config, sort_keys=False))
             elif self.changes:
                 entry = {"time": datetime.datetime.now().isoformat(timespec="seconds"),
                          "iteration": self.latest_step(), "changes": self.changes}
                 with (self.path / "config_history.yaml").open("a") as fh:
                     fh.write(yaml.safe_dump([entry], sort_keys=False))
-                cfg_file.write_text(yaml.safe_dump(self.config, sort_keys=False))
+                _write_atomic(cfg_file, yaml.safe_dump(self.config, sort_keys=False))
         except OSError as e:
             raise RunDirError(f"{self.path}: cannot write the run directory ({e.strerror or e}); "
                               "choose another run_dir") from None
@@ -139,8 +157,13 @@ class RunDir:
     @property
     def manager(self):
         if self._manager is None:
+            kw = dict(create=True)
+            if self._reader and several():     # a reader: this process alone, among several
+                me = jax.process_index()
+                kw = dict(create=False, multiprocessing_options=ocp.options.MultiprocessingOptions(
+                    primary_host=me, active_processes={me}, barrier_sync_key_prefix=f"reader{me}"))
             self._manager = ocp.CheckpointManager(
-                self.path / "checkpoints", options=ocp.CheckpointManagerOptions(max_to_keep=3, create=True))
+                self.path / "checkpoints", options=ocp.CheckpointManagerOptions(max_to_keep=3, **kw))
         return self._manager
 
     def latest_step(self) -> int | None:
@@ -155,21 +178,25 @@ class RunDir:
         return sorted(self.manager.all_steps())
 
     def set_aside_after(self, step: int) -> list[int]:
-        """Move every checkpoint after `step` to checkpoints.orphaned/ (resuming from an earlier checkpoint)."""
+        """Move every checkpoint after `step` to checkpoints.orphaned/ (resuming from an earlier checkpoint; process 0
+        moves, every process then reopens the checkpoints)."""
         later = [k for k in self.steps() if k > step]
         if later:
             if self._manager is not None:
                 self._manager.close()
                 self._manager = None
-            dest = self.path / "checkpoints.orphaned"
-            dest.mkdir(exist_ok=True)
-            for k in later:
-                shutil.move(str(self.path / "checkpoints" / str(k)), str(_aside(dest / str(k))))
+            if is_main():
+                dest = self.path / "checkpoints.orphaned"
+                dest.mkdir(exist_ok=True)
+                for k in later:
+                    shutil.move(str(self.path / "checkpoints" / str(k)), str(_aside(dest / str(k))))
+            barrier("checkpoints set aside")
         return later
 
     def save(self, step: int, state) -> None:
         """Checkpoint the leaves of `state` (Orbax cannot store zero-size arrays, so those are left out and
-        rebuilt from the live structure on restore)."""
+        rebuilt from the live structure on restore). With several processes every one calls it (with the same
+        global arrays) and writes its own shards."""
         leaves = jax.tree_util.tree_leaves(state)
         payload = {f"leaf{i:05d}": x for i, x in enumerate(leaves) if x.size}
         self.manager.save(step, args=ocp.args.StandardSave(payload))
@@ -177,10 +204,15 @@ class RunDir:
 
     def restore(self, step: int, like):
         """Restore checkpoint `step` into the structure of `like` (an initial train state, or its
-        `jax.eval_shape`)."""
+        `jax.eval_shape`): each array straight into the sharding of its `like` (a global array of several devices
+        or processes: each process reads its own shards, whatever the layout it was saved from), or onto this
+        process's first device where `like` has none."""
         where = self.path / "checkpoints" / str(step)
         leaves, treedef = jax.tree_util.tree_flatten(like)
-        abstract = {f"leaf{i:05d}": jax.ShapeDtypeStruct(x.shape, x.dtype) for i, x in enumerate(leaves) if x.size}
+        local = jax.sharding.SingleDeviceSharding(jax.local_devices()[0])
+        shardings = [getattr(x, "sharding", None) or local for x in leaves]
+        abstract = {f"leaf{i:05d}": jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=shardings[i])
+                    for i, x in enumerate(leaves) if x.size}
         try:
             got = self.manager.restore(step, args=ocp.args.StandardRestore(abstract))
             if set(got) != set(abstract):
@@ -197,19 +229,23 @@ class RunDir:
             raise RunDirError(f"{where}: the checkpoint could not be restored into this run's train state "
                               f"({reason}); it may be corrupt or from another model. Nothing was changed.{hint}"
                               ) from None
-        # uncommitted device arrays, like those of a fresh state: jitted functions then hit their compile cache
-        # (Orbax returns committed arrays, which would make every jitted train function compile again)
-        return jax.tree_util.tree_unflatten(
-            treedef, [jax.numpy.asarray(np.asarray(got[f"leaf{i:05d}"])) if x.size else jax.numpy.zeros(x.shape, x.dtype)
-                      for i, x in enumerate(leaves)])
+        # one device: uncommitted device arrays, like those of a fresh state, so that jitted functions hit their
+        # compile cache (Orbax returns committed arrays, which would make every jitted train function compile
+        # again); several devices: the global arrays as restored, already in the train state's layout
+        def leaf(i, x):
+            if not x.size:
+                return x if isinstance(x, jax.Array) else jax.numpy.zeros(x.shape, x.dtype)
+            y = got[f"leaf{i:05d}"]
+            return jax.numpy.asarray(np.asarray(y)) if len(shardings[i].device_set) == 1 else y
+        return jax.tree_util.tree_unflatten(treedef, [leaf(i, x) for i, x in enumerate(leaves)])
 
     # ---- metrics -------------------------------------------------------------------------------------------
     def truncate_metrics(self, last_iteration: int) -> None:
         """Keep the metric rows up to `last_iteration` (0: none, a fresh start); the whole old file moves to
         metrics.csv.orphaned[.N] and TensorBoard's events to tb.orphaned[.N]/, and the kept rows are logged again
-        into fresh events."""
+        into fresh events (process 0)."""
         f = self.path / "metrics.csv"
-        if not f.exists():
+        if not is_main() or not f.exists():
             return
         with f.open() as fh:
             rows = list(csv.DictReader(fh))
@@ -223,6 +259,9 @@ class RunDir:
             self.log({k: _number(v) for k, v in r.items()})
 
     def log(self, row: Mapping[str, float]) -> None:
+        """Append one row to metrics.csv and TensorBoard (process 0; the others write nothing)."""
+        if not is_main():
+            return
         f = self.path / "metrics.csv"
         row = {k: (float(v) if not isinstance(v, (int, str)) else v) for k, v in row.items()}
         new = not f.exists()

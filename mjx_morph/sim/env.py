@@ -163,7 +163,8 @@ class UnimalEnv:
         mm = self.sm.mj_models[0]
         self._hgeom = int(np.nonzero(mm.geom_type == 1)[0][0]) if self.terrain.uses_hfield else -1  # mjGEOM_HFIELD
         self._ancestors = jnp.asarray(observation.ancestor_dofs(mm))
-        self._template = jax.device_put(mjx.make_data(self.sm.model_for(0), impl="jax"))
+        # on this process's device (MJX's default, jax.devices()[0], is process 0's when there are several)
+        self._template = jax.device_put(mjx.make_data(self.sm.model_for(0), impl="jax", device=jax.local_devices()[0]))
         self.hfield_size = terrain.grid.HFIELD_OBS_SIZE if self.task.hfield_obs else 0
 
     # ---- helpers ---------------------------------------------------------------------------------------------

@@ -186,7 +186,7 @@ def build_stacked_model(robots: Sequence[Morphology], world: WorldSpec = WorldSp
     tree = tree or build_shared_tree(robots)
     options, search = _with_self_pairs(robots, tree, options, budget=self_pair_budget)
     mjm = compile_padded(robots, tree, world, options)
-    cpu = jax.devices("cpu")[0]
+    cpu = jax.local_devices(backend="cpu")[0]      # this process's (jax.devices: every process's, with several)
     mxs = []
     for mm in mjm:
         mx = mjx.put_model(mm, device=cpu, impl="jax")
