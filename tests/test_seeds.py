@@ -24,6 +24,7 @@ PPO = PPOConfig(num_envs=8, rollout_len=16, window=8, burn_in=4, minibatch_size=
 TOTAL = 8 * 16 * 10
 #: after 2 iterations of the toy config (reassociated float32 sums, as for several devices in test_devices.py)
 PARAM_TOLERANCE = 1e-6
+KL = 2e-4            # tight enough that the KL stop fires within the first iterations, at different minibatches
 
 
 def max_diff(a, b) -> float:
@@ -31,11 +32,11 @@ def max_diff(a, b) -> float:
                 for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b)) if np.size(x)), default=0.0)
 
 
-@pytest.mark.parametrize("arch,kl", [("rmomo", 0.05), ("metamorph", 2e-4)])
-def test_seeds_side_by_side_equal_seeds_alone(arch, kl):
-    """With kl=2e-4 the KL stop fires at a different minibatch in each seed: each seed still matches its own run."""
-    model = make_model(arch, hfield=False, decoder_dims=[], precision="fp32", **TINY)
-    cfg = dataclasses.replace(PPO, kl_threshold=kl)
+def test_seeds_side_by_side_equal_seeds_alone():
+    """R-MoMo (recurrent state, burn-in tails) with a KL stop that fires at a different minibatch in each seed: each
+    seed still matches its own run."""
+    model = make_model("rmomo", hfield=False, decoder_dims=[], precision="fp32", **TINY)
+    cfg = dataclasses.replace(PPO, kl_threshold=KL)
     one = Trainer(ToyEnv(), model, cfg, TOTAL, fast_compile=True)
     many = Trainer(ToyEnv(), model, cfg, TOTAL, fast_compile=True, seeds=2)
     seeds = [3, 5]
@@ -54,8 +55,7 @@ def test_seeds_side_by_side_equal_seeds_alone(arch, kl):
         assert max_diff(seed_state(ts, i).params, alone[i].params) < PARAM_TOLERANCE
         assert max_diff(seed_state(ts, i).env.obs, alone[i].env.obs) < 1e-5
     assert max_diff(seed_state(ts, 0).params, seed_state(ts, 1).params) > 1e-3      # the seeds really differ
-    if kl < 0.01:
-        assert counts[0][0] != counts[0][1] and min(counts[0]) < 8    # the stop fired in one seed only
+    assert any(c[0] != c[1] for c in counts) and min(map(min, counts)) < 8    # the stop fired, not alike
 
 
 def test_seed_count_must_match_the_keys():
