@@ -115,13 +115,15 @@ def test_study_plan_passes_env_options_and_extra_overrides(capsys):
 
 @pytest.mark.parametrize("name,archs,runs", [("ab_rmomo_cell", {"rmomo"}, 4), ("ab_rmemo_context", {"rmemo"}, 2),
                                              ("ab_geometry", {"rmomo", "modumorph"}, 3),
-                                             ("ab_precision", {"rmomo", "modumorph"}, 3)])
+                                             ("ab_precision", {"rmomo", "modumorph"}, 3),
+                                             ("kl_threshold", {"metamorph", "modumorph", "rmemo", "rmomo"}, 2)])
 def test_ab_studies_compose(capsys, name, archs, runs):
-    """The issue-15 A/B studies: their own architectures, the first 20 M steps of the 100 M schedule for every run,
-    and every run's config valid (the study composes them all before printing)."""
+    """The issue-15 studies: their own architectures, the 100 M schedule for every run (the A/Bs: its first 20 M steps;
+    the KL-threshold choice: all of it), and every run's config valid (the study composes them all before printing)."""
     from experiments import study
     assert study.main([name, "seeds=[0,1]", "dry_run=true"]) == 0
     lines = capsys.readouterr().out.strip().splitlines()
     assert len(lines) == 2 * len(archs) * runs
     assert {ln.split("arch=")[1].split()[0] for ln in lines} == archs
-    assert all("total_steps=100000000 stop_at=245" in ln for ln in lines)
+    assert all("total_steps=100000000" in ln for ln in lines)
+    assert all("stop_at=245" in ln for ln in lines) == (name != "kl_threshold")
