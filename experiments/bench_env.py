@@ -86,7 +86,8 @@ def run_case(c: dict) -> dict:
         def one(robot, qpos, qvel, warm, ctrl):
             m = sm.model_for(robot)
             d = env._template.replace(qpos=qpos, qvel=qvel, qacc_warmstart=warm, ctrl=ctrl)
-            d = jax.lax.fori_loop(0, config.substeps, lambda i, dd: mjx.step(m, dd), d)
+            with env.physics():     # the env's precision and contact rules (they size the contact arrays)
+                d = jax.lax.fori_loop(0, config.substeps, lambda i, dd: mjx.step(m, dd), d)
             return d.qpos, d.qvel, d.qacc_warmstart
 
         def rollout(carry, key):

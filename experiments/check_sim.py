@@ -5,6 +5,7 @@
     python -m experiments.check_sim gen/train iterations=100 ls_iterations=50 steps=25
     python -m experiments.check_sim unimal100/train mutated=1000    # 1000 mutants of the train robots, one tree
     python -m experiments.check_sim unimal100/train task=csr        # height-field tasks: MJX vs MuJoCo C, same patches
+    python -m experiments.check_sim unimal100/train task=csr num_robots=5 hfield_contacts=mjx   # MJX's own collider
 
 Prints per robot the worst body-position error (m) over `steps` control steps of the padded MJX robot against the
 robot alone in MuJoCo C on MetaMorph's floor, split into the padding's share (padded vs alone, both MuJoCo C) and
@@ -51,6 +52,10 @@ class CheckSimConfig:
                                              # MuJoCo C on the same height-field patches (fidelity.compare_hfield)
     mutated: int = 0                         # > 0: check this many robots made from the set by DERL's mutation
                                              # operators (one random operator each) instead of the set itself
+    num_robots: int = 0                      # > 0: only the set's first num_robots robots
+    hfield_contacts: str = _ENV.hfield_contacts   # csr / obstacle: the env's height-field rule (mujoco | mjx)
+    hfield_contacts_per_geom: int = _ENV.hfield_contacts_per_geom
+    contact_budget: int = _ENV.contact_budget     # csr / obstacle: the env's cap on contacts per env (0: none)
 
 
 register("check_sim_schema", CheckSimConfig)
@@ -61,6 +66,8 @@ def check(a: CheckSimConfig) -> None:
     if a.mutated:
         robots = mutated_robots(rs.robots, a.mutated, seed=a.seed)
         rs = dataclasses.replace(rs, name=f"{rs.name} mutated x{a.mutated}", robots=tuple(robots))
+    if a.num_robots > 0:
+        rs = dataclasses.replace(rs, name=f"{rs.name}[:{a.num_robots}]", robots=tuple(rs.robots[:a.num_robots]))
     if a.task != "ft":
         return check_hfield(a, rs)
     tree = build_shared_tree(rs.robots)
@@ -109,10 +116,16 @@ def check_hfield(a: CheckSimConfig, rs) -> None:
     opts = SolverOptions(iterations=a.iterations, ls_iterations=a.ls_iterations, self_collision=a.self_collision)
     t0 = time.time()
     print(f"# comparing {len(rs)} robots on {a.task} with MuJoCo C on the same height-field patches...", flush=True)
-    res = fidelity.compare_hfield(rs.robots, a.task, opts, steps=a.steps, seed=a.seed)
+    res = fidelity.compare_hfield(rs.robots, a.task, opts, steps=a.steps, seed=a.seed,
+                                  hfield_contacts=a.hfield_contacts,
+                                  hfield_contacts_per_geom=a.hfield_contacts_per_geom,
+                                  contact_budget=a.contact_budget)
     print(f"# {rs.name} on {a.task}: {len(res)} robots, solver iterations {a.iterations}, line search "
-          f"{a.ls_iterations}, {a.steps} control steps ({time.time() - t0:.0f} s); mjx = padded MJX vs padded MuJoCo "
-          "C (float64), max body-position error (m); first step over 1e-5 m")
+          f"{a.ls_iterations}, {a.steps} control steps, height-field contacts {a.hfield_contacts}"
+          f"{f' ({a.hfield_contacts_per_geom} per geom)' if a.hfield_contacts == 'mujoco' else ''}, "
+          f"contact budget {a.contact_budget or 'none'} "
+          f"({time.time() - t0:.0f} s); mjx = padded MJX vs padded MuJoCo C (float64), max body-position error (m); "
+          "first step over 1e-5 m")
     for r in res:
         first = int(np.argmax(r.steps > 1e-5)) if (r.steps > 1e-5).any() else -1
         flag = "" if r.mjx <= a.tolerance else "   OVER TOLERANCE"

@@ -18,6 +18,7 @@ Data flow (one idea per module):
     env          `UnimalEnv`: the task (reset / step without reset / observe); `make_env`
     wrappers     `AutoReset`: auto-reset into a sampled robot, batched vreset / vstep / init (what make_env returns)
     contact      floor-capsule contacts for MJX as MuJoCo C makes them against MetaMorph's box floor
+    hfield_contact  height-field sphere / capsule contacts for MJX as MuJoCo C makes them (one per prism)
     cpu_linalg   pure-JAX Cholesky for MJX on CPU with jaxlib < 0.11 (deadlock workaround)
     fidelity     padded MJX robots against the robots alone in MuJoCo C (`experiments.check_sim`)
 
@@ -37,8 +38,10 @@ Public API:
 
 Process-wide patches of MJX, made once when this package is imported (below): `contact.install()` (the
 floor-capsule collider of every MJX step traced in the process applies the rule of the `contact.floor(rule)` block
-being traced, MuJoCo C's box-face contacts outside any; an env traces its step inside `floor(config.floor_contacts)`)
-and `cpu_linalg.install()` (pure-JAX Cholesky in MJX on CPU with jaxlib < 0.11).
+being traced, MuJoCo C's box-face contacts outside any; an env traces its step inside `floor(config.floor_contacts)`),
+`hfield_contact.install()` (likewise the height-field sphere / capsule colliders and `hfield_contact.rule(...)`,
+MuJoCo C's contacts outside any block; the rule also sizes MJX's contact arrays, so an env runs `make_data` and its
+steps inside `UnimalEnv.physics()`) and `cpu_linalg.install()` (pure-JAX Cholesky in MJX on CPU with jaxlib < 0.11).
 
 Deviations from MetaMorph / ModuMorph (each documented in its module):
 - solver: 5 Newton iterations and 8 line-search iterations instead of 100 / 50 (env.py; fidelity numbers in
@@ -48,7 +51,8 @@ Deviations from MetaMorph / ModuMorph (each documented in its module):
   incline's slab 40 m wide and 150 m long); csr / obstacle use one moving 0.1 m height-field patch
   built from MetaMorph's height array, so observation and physics agree: no rugged-square y-mirror
   (terrain/corridor.py), obstacles are columns standing on the floor instead of boxes floating 0.1 m above it
-  (terrain/obstacles.py), terrain contacts use MJX's height-field collider (terrain/__init__.py);
+  (terrain/obstacles.py); their terrain contacts are MuJoCo C's height-field contacts (hfield_contact.py), at
+  most 32 per geom and, with the robot's own, at most 64 per env, the deepest (`EnvConfig.contact_budget`);
 - capsule masses of MuJoCo >= 2.1 (3-5% above MuJoCo 2.0) (padding.py);
 - a NaN or exploding state ends the episode as `unstable` (MetaMorph: a MuJoCo exception silently skipped the
   remaining substeps) (env.py);
@@ -56,8 +60,10 @@ Deviations from MetaMorph / ModuMorph (each documented in its module):
   MetaMorph read them (observation.py).
 """
 # MJX is patched once, when this package is imported (the missing-Warp message was silenced by mjx_morph's
-# own import): MuJoCo C's floor-capsule contacts (contact.py) and, on old CPU jaxlibs, a pure-JAX Cholesky.
-from . import contact, cpu_linalg  # noqa: E402
+# own import): MuJoCo C's floor-capsule contacts (contact.py), MuJoCo C's height-field sphere / capsule contacts
+# (hfield_contact.py) and, on old CPU jaxlibs, a pure-JAX Cholesky.
+from . import contact, cpu_linalg, hfield_contact  # noqa: E402
 
 contact.install()
+hfield_contact.install()
 cpu_linalg.install()

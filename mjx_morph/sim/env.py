@@ -36,15 +36,20 @@ docs/benchmarks.md); self-collision (on, as MetaMorph, with the candidate
 pairs cut to those some robot of the set can make touch, `selfcontact.py`); physics in
 float32 with float32 matmuls (`matmul_precision="highest"`: JAX's default would round matmul inputs to TF32 on
 recent NVIDIA GPUs; MetaMorph float64); the ft / incline floor is a plane whose capsule contacts are those
-MuJoCo C makes against MetaMorph's box floor (`floor_contacts="box"`, `contact.py`). Contacts otherwise as
+MuJoCo C makes against MetaMorph's box floor (`floor_contacts="box"`, `contact.py`); csr / obstacle height-field
+contacts are MuJoCo C's (`hfield_contacts="mujoco"`, `hfield_contact.py`: one per penetrated prism, at most
+`hfield_contacts_per_geom` = 32 per geom) and MJX keeps at most `contact_budget` = 64 contacts per env on those
+tasks, the deepest (MuJoCo C has no such cap; none of 100 train robots x 3 s of random actions made more than 44).
+Contacts otherwise as
 MetaMorph: condim 3, friction 0.7, pyramidal cone, Newton solver, Euler
 integrator, parent-child filtering, no exclude pairs.
 """
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
-from typing import Any, List, NamedTuple, Optional, Sequence
+from typing import Any, Iterator, List, NamedTuple, Optional, Sequence
 
 import jax
 import jax.numpy as jnp
@@ -54,7 +59,7 @@ from mujoco import mjx
 from ..layout import NUM_ACTIONS, Obs, Robots, context_mask
 from ..unimal.morphology import Morphology
 from ..unimal.sets import RobotSet, load_set
-from . import contact, observation, reward, terrain
+from . import contact, hfield_contact, observation, reward, terrain
 from .model import StackedModel, Tables, build_stacked_model
 from .padding import SolverOptions
 from .tasks import EPISODE_LENGTH, FRAME_SKIP, RESET_NOISE, Task, get_task
@@ -79,6 +84,13 @@ class EnvConfig:
     unroll_substeps: bool = False   # Python-unroll the substeps instead of a fori_loop
     floor_contacts: str = "box"     # ft / incline floor-capsule contacts: "box" (MuJoCo C against MetaMorph's box
                                     # floor), "plane" (MuJoCo C's plane) or "mjx" (MJX's own); contact.py
+    hfield_contacts: str = "mujoco" # csr / obstacle height-field contacts of spheres and capsules: "mujoco" (MuJoCo
+                                    # C's, one per penetrated prism) or "mjx" (MJX's own, 4 per geom);
+                                    # hfield_contact.py
+    hfield_contacts_per_geom: int = hfield_contact.DEFAULT_PER_GEOM   # "mujoco": contact slots per (height
+                                    # field, geom) pair, 32 (the deepest are kept beyond; MuJoCo C keeps up to 50)
+    contact_budget: int = 64        # csr / obstacle: MJX keeps at most this many contacts per env, the deepest
+                                    # (MuJoCo C: no such cap); 0: every contact slot (padding.SolverOptions)
     context_features: Optional[List[str]] = None   # None: all context features; else only these groups of
                                                    # mjx_morph.layout.CONTEXT_GROUPS, the others zeroed
     matmul_precision: str = "highest"   # JAX matmul precision of the physics: "highest" (float32, as MuJoCo's
@@ -130,11 +142,11 @@ def _no_stats() -> EpisodeStats:
                         unstable=f)
 
 
-def _physics_precision(method):
-    """Trace the method under the physics' matmul precision (`EnvConfig.matmul_precision`)."""
+def _in_physics(method):
+    """Trace the method under the physics' matmul precision and contact rules (`UnimalEnv.physics`)."""
     @functools.wraps(method)
     def wrapped(self, *args, **kwargs):
-        with jax.default_matmul_precision(self.config.matmul_precision):
+        with self.physics():
             return method(self, *args, **kwargs)
     return wrapped
 
@@ -147,14 +159,18 @@ class UnimalEnv:
         self.config = config
         self.task: Task = get_task(config.task)
         contact.check_rule(config.floor_contacts)
+        hfield_contact.check_rule(config.hfield_contacts, config.hfield_contacts_per_geom)
         if config.matmul_precision not in ("highest", "default"):
             raise ValueError(f"env.matmul_precision={config.matmul_precision!r}: expected highest or default")
         self.morphologies = tuple(robots)
         self.terrain: terrain.Terrain = terrain.for_task(self.task, self.morphologies)
+        budget = config.contact_budget if self.terrain.uses_hfield and config.contact_budget > 0 else None
         opts = SolverOptions(iterations=config.iterations, ls_iterations=config.ls_iterations,
-                             self_collision=config.self_collision, self_collision_cut=config.self_collision_cut)
-        self.sm: StackedModel = build_stacked_model(self.morphologies, self.terrain.world(), opts,
-                                                    self_pair_budget=config.self_pair_budget)
+                             self_collision=config.self_collision, self_collision_cut=config.self_collision_cut,
+                             contact_budget=budget)
+        with self.physics():        # MJX sizes the contact arrays by the contact rules (the summary's count too)
+            self.sm: StackedModel = build_stacked_model(self.morphologies, self.terrain.world(), opts,
+                                                        self_pair_budget=config.self_pair_budget)
         self.robots: Robots = self.sm.policy
         if config.context_features is not None:
             self.robots = self.robots._replace(context=self.robots.context * context_mask(config.context_features))
@@ -163,11 +179,23 @@ class UnimalEnv:
         mm = self.sm.mj_models[0]
         self._hgeom = int(np.nonzero(mm.geom_type == 1)[0][0]) if self.terrain.uses_hfield else -1  # mjGEOM_HFIELD
         self._ancestors = jnp.asarray(observation.ancestor_dofs(mm))
-        # on this process's device (MJX's default, jax.devices()[0], is process 0's when there are several)
-        self._template = jax.device_put(mjx.make_data(self.sm.model_for(0), impl="jax", device=jax.local_devices()[0]))
+        # on this process's device (MJX's default, jax.devices()[0], is process 0's when there are several); inside
+        # physics(): the height-field contact rule sizes the contact arrays
+        with self.physics():
+            self._template = jax.device_put(mjx.make_data(self.sm.model_for(0), impl="jax",
+                                                          device=jax.local_devices()[0]))
         self.hfield_size = terrain.grid.HFIELD_OBS_SIZE if self.task.hfield_obs else 0
 
     # ---- helpers ---------------------------------------------------------------------------------------------
+    @contextlib.contextmanager
+    def physics(self) -> Iterator[None]:
+        """The block to trace this env's MJX calls in (make_data, step): its matmul precision, floor-capsule rule
+        (contact.py) and height-field rule (hfield_contact.py; it also sets the size of MJX's contact arrays)."""
+        c = self.config
+        with jax.default_matmul_precision(c.matmul_precision), contact.floor(c.floor_contacts), \
+                hfield_contact.rule(c.hfield_contacts, c.hfield_contacts_per_geom):
+            yield
+
     def _row(self, tree, robot):
         return jax.tree_util.tree_map(lambda x: x[robot], tree)
 
@@ -203,7 +231,7 @@ class UnimalEnv:
         return self._obs(d, qpos, qvel, tab, pol, robot, ts, prev_action, yaw_aligned=True), d.xpos[1, 0]
 
     # ---- API ---------------------------------------------------------------------------------------------------
-    @_physics_precision
+    @_in_physics
     def reset(self, key: jax.Array, robot: jax.Array) -> EnvState:
         robot = jnp.asarray(robot, jnp.int32)
         kq, kv, kt, knext = jax.random.split(key, 4)
@@ -220,7 +248,7 @@ class UnimalEnv:
                         obs=obs, reward=jnp.float32(0.0), done=jnp.asarray(False), truncated=jnp.asarray(False),
                         ended=_no_stats(), key=knext)
 
-    @_physics_precision
+    @_in_physics
     def observe(self, robot: jax.Array, qpos: jax.Array, qvel: jax.Array, terrain_state=None,
                 prev_action: jax.Array | None = None) -> Obs:
         """The observation of an arbitrary state of robot `robot` (padded qpos/qvel layout), with kinematics
@@ -230,7 +258,7 @@ class UnimalEnv:
         pa = jnp.zeros((NUM_ACTIONS,), jnp.float32) if prev_action is None else prev_action
         return self._observe(robot, jnp.asarray(qpos, jnp.float32), jnp.asarray(qvel, jnp.float32), ts, pa)[0]
 
-    @_physics_precision
+    @_in_physics
     def step(self, state: EnvState, action: jax.Array) -> EnvState:
         """One control step; where it ends the episode (`done`) the returned state is the terminal one (zeroed if
         unstable) and `ended` holds the episode's statistics. The key is left as it is."""
@@ -242,12 +270,11 @@ class UnimalEnv:
         act = jnp.where(pol.act_mask, jnp.clip(raw, -1.0, 1.0), 0.0)
         ctrl = jnp.concatenate([act, jnp.zeros((1,), jnp.float32)])[tab.ctrl_src]
         d = self._template.replace(qpos=phys.qpos, qvel=phys.qvel, qacc_warmstart=phys.qacc_warmstart, ctrl=ctrl)
-        with contact.floor(self.config.floor_contacts):
-            if self.config.unroll_substeps:
-                for _ in range(self.config.substeps):
-                    d = mjx.step(m, d)
-            else:
-                d = jax.lax.fori_loop(0, self.config.substeps, lambda i, dd: mjx.step(m, dd), d)
+        if self.config.unroll_substeps:
+            for _ in range(self.config.substeps):
+                d = mjx.step(m, d)
+        else:
+            d = jax.lax.fori_loop(0, self.config.substeps, lambda i, dd: mjx.step(m, dd), d)
 
         finite = lambda x: jnp.all(jnp.isfinite(x))
         ok = (finite(d.qpos) & finite(d.qvel) & finite(d.xpos) & finite(d.xquat) & finite(d.cvel)

@@ -199,16 +199,18 @@ class HfieldResult:
 
 
 def compare_hfield(robots: Sequence[Morphology], task: str, options: SolverOptions = SolverOptions(),
-                   steps: int = 25, seed: int = 0) -> list[HfieldResult]:
+                   steps: int = 25, seed: int = 0, **env_options) -> list[HfieldResult]:
     """The height-field tasks (csr, obstacle): every robot in the env's padded MJX model against the same padded
     model in MuJoCo C (float64), from the env's own reset state (a generated terrain) under N(0, 0.9) actions. Before
     each control step both get the height-field patch the env centres under their own torso (`terrain.patch`), so
-    the comparison is MJX's height-field collider and float32 against MuJoCo C's. Body positions are compared
-    through MuJoCo C's kinematics of both states."""
+    the comparison is MJX's height-field collider (the env's `hfield_contacts` rule, hfield_contact.py), its
+    contact budget and float32 against MuJoCo C's. `env_options`: further EnvConfig options (hfield_contacts,
+    hfield_contacts_per_geom, contact_budget). Body positions are compared through MuJoCo C's kinematics of both
+    states."""
     from .env import EnvConfig, UnimalEnv
     robots = tuple(robots)
     env = UnimalEnv(robots, EnvConfig(task=task, iterations=options.iterations, ls_iterations=options.ls_iterations,
-                                      self_collision=options.self_collision))
+                                      self_collision=options.self_collision, **env_options))
     if not env.terrain.uses_hfield:
         raise ValueError(f"task {task!r} has no height field; compare() checks the floors")
     sm, R = env.sm, len(robots)

@@ -79,6 +79,8 @@ class SolverOptions:
                         sets it to the most pairs of two real limbs any robot has, and gives inert geoms a bounding
                         radius of -1e4 m so they are never among the closest: then no robot loses a pair
                         (None: every pair, as without a budget)
+    contact_budget      MJX keeps at most this many contacts per env, the deepest (MJX's `max_contact_points`,
+                        over all contacts: they all have condim 3); None: every contact slot of every pair
     """
     iterations: int = 5
     ls_iterations: int = 8
@@ -87,6 +89,7 @@ class SolverOptions:
     self_collision_cut: bool = True
     self_pairs: frozenset | None = None
     self_pair_budget: int | None = None
+    contact_budget: int | None = None
 
     def option_xml(self) -> str:
         return (f'  <option timestep="{_num(self.timestep)}" iterations="{self.iterations}" '
@@ -173,9 +176,13 @@ def padded_mjcf(m: Morphology, tree: SharedTree, robot: int, world: WorldSpec = 
         lines.append("  <contact>")
         lines += [f'    <exclude body1="{_body_name(s)}" body2="{_body_name(t)}"/>' for s, t in excluded]
         lines.append("  </contact>")
+    custom = []
     if options.self_collision and options.self_pair_budget is not None:
-        lines += ["  <custom>", f'    <numeric name="max_geom_pairs" data="{int(options.self_pair_budget)}"/>',
-                  "  </custom>"]
+        custom.append(f'    <numeric name="max_geom_pairs" data="{int(options.self_pair_budget)}"/>')
+    if options.contact_budget is not None:
+        custom.append(f'    <numeric name="max_contact_points" data="{int(options.contact_budget)}"/>')
+    if custom:
+        lines += ["  <custom>", *custom, "  </custom>"]
     lines.append("  <actuator>")
     for s in range(1, tree.num_slots):
         i = limb_of_slot.get(s)

@@ -18,8 +18,9 @@ observation read it, and the physics is one P x P height-field patch that follow
 control step from `physical_height` of the same cells, so what the policy sees is what the robot stands on. The
 random terrains themselves are in `corridor.py` and `obstacles.py`, with their deviations from MetaMorph.
 
-Deviation common to csr and obstacle (listed in `mjx_morph/sim/__init__.py`): with the height field as the only
-ground, terrain contacts use MJX's height-field collider (4 contacts per geom) instead of box/plane contacts.
+Deviation common to csr and obstacle (listed in `mjx_morph/sim/__init__.py`): the height field is the only ground
+(MetaMorph's is one too); its contacts are MuJoCo C's height-field contacts (`hfield_contact.py`: one per prism a
+geom penetrates), at most 32 per geom and 64 per env (all contacts), the deepest kept beyond.
 """
 from __future__ import annotations
 
