@@ -23,6 +23,7 @@ import numpy as np
 import yaml
 
 from ..layout import CONTEXT_GROUPS as _GROUPS
+from ..run.run_dir import flatten_config, matches_key
 
 CONTEXT_GROUPS: tuple[str, ...] = tuple(_GROUPS)     # in column order: the order of the groups in figures
 
@@ -235,17 +236,6 @@ VARIANT_KEYS = ("model", "ppo", "precision", "env")
 NOT_VARIANT_KEYS = ("env.task", "env.context_features")
 
 
-def _flat(d: dict, prefix: str = "") -> dict[str, object]:
-    out = {}
-    for k, v in d.items():
-        key = f"{prefix}{k}"
-        if isinstance(v, dict):
-            out.update(_flat(v, key + "."))
-        else:
-            out[key] = tuple(v) if isinstance(v, list) else v
-    return out
-
-
 def _value(v) -> str:
     if v is None:
         return "default"       # a model option left to the architecture's own value
@@ -259,10 +249,9 @@ def name_variants(runs: Sequence[Run]) -> None:
     groups: dict[tuple[str, str], list[Run]] = {}
     for r in runs:
         groups.setdefault((r.task, r.arch), []).append(r)
-    in_scope = lambda k: (any(k == p or k.startswith(p + ".") for p in VARIANT_KEYS)
-                          and not any(k == p or k.startswith(p + ".") for p in NOT_VARIANT_KEYS))
+    in_scope = lambda k: matches_key(k, VARIANT_KEYS) and not matches_key(k, NOT_VARIANT_KEYS)
     for rs in groups.values():
-        flats = [_flat(r.cfg) for r in rs]
+        flats = [flatten_config(r.cfg) for r in rs]
         keys = sorted(k for k in set.intersection(*(set(f) for f in flats)) if in_scope(k)
                       and len({repr(f[k]) for f in flats}) > 1)
         for r, f in zip(rs, flats):

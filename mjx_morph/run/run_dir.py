@@ -51,12 +51,13 @@ class RunDirError(RuntimeError):
     pass
 
 
-def _flatten(d: Mapping, prefix: str = "") -> dict[str, Any]:
+def flatten_config(d: Mapping, prefix: str = "") -> dict[str, Any]:
+    """A nested config as {dotted key: value}."""
     out = {}
     for k, v in d.items():
         key = f"{prefix}{k}"
         if isinstance(v, Mapping):
-            out.update(_flatten(v, key + "."))
+            out.update(flatten_config(v, key + "."))
         else:
             out[key] = v
     return out
@@ -89,7 +90,8 @@ def _write_atomic(path: Path, text: str) -> None:
     tmp.replace(path)
 
 
-def _matches(key: str, prefixes) -> bool:
+def matches_key(key: str, prefixes) -> bool:
+    """`key` is one of the dotted `prefixes` or lies below one."""
     return any(key == p or key.startswith(p + ".") for p in prefixes)
 
 
@@ -115,15 +117,15 @@ class RunDir:
             self._check(saved, cfg_file, identity, free, allow_changes)
 
     def _check(self, saved: Mapping, where: Path, identity, free, allowed) -> None:
-        a, b = _flatten(saved), _flatten(self.config)
+        a, b = flatten_config(saved), flatten_config(self.config)
         fixed, changed = [], []
         for key in sorted(set(a) | set(b)):
-            if a.get(key) == b.get(key) or _matches(key, free):
+            if a.get(key) == b.get(key) or matches_key(key, free):
                 continue
             diff = f"{key}: saved {a.get(key)!r}, now {b.get(key)!r}"
-            if _matches(key, identity):
+            if matches_key(key, identity):
                 fixed.append(diff)
-            elif _matches(key, allowed):
+            elif matches_key(key, allowed):
                 changed.append(f"{key}: {a.get(key)!r} -> {b.get(key)!r}")
             else:
                 fixed.append(diff + " (allow_changes=[" + key + "] to accept it)")
