@@ -8,8 +8,12 @@ A study file lists `runs` (name -> overrides of experiments.run), and optionally
 `archs` (the default architectures) and `evaluate` (the sets to evaluate each run on).
 
 Run directories: <out>/<study>/<env>-<arch>-<run>-s<seed> (default out: runs/studies). Each run is an ordinary
-`experiments.run` run: rerunning the study resumes unfinished runs (finished ones are not retrained; their
-evaluation runs again). The seeds of a run train side by side in one program (`seeds=[...]` of experiments.run; those
+`experiments.run` run: rerunning the study resumes unfinished runs; finished ones are not retrained, and a set
+already evaluated at the run's last checkpoint (eval/<set>.json) is not evaluated again. `only=[a,b]` takes the
+study's runs a and b alone; `time_limit_min=N` ends the invocation after about N minutes of training (the run in
+training checkpoints, runs that did not finish are not evaluated; rerun to go on):
+
+    python -m experiments.study ab_rmomo_cell only=[default,scale_after] seeds=[0,1] time_limit_min=9 The seeds of a run train side by side in one program (`seeds=[...]` of experiments.run; those
 at the same checkpoint together), unless side_by_side=false. Afterwards: python -m experiments.report runs=[<out>/<study>] out=<dir>.
 
 On several hosts (the same command on each, with the distributed settings of experiments.run after --: README,
@@ -19,13 +23,14 @@ from __future__ import annotations
 
 import dataclasses
 import sys
+import time
 from pathlib import Path
 from typing import List, Optional
 
 import yaml
 from omegaconf import MISSING
 
-from mjx_morph.eval.evaluate import evaluate_run
+from mjx_morph.eval.evaluate import evaluate_run, evaluated, resolve_set
 from mjx_morph.run import CONF_DIR, RunDir, compose_run_config, distributed, register, train, use_compile_cache
 from mjx_morph.sim.env import EnvConfig
 
@@ -33,6 +38,8 @@ from . import cli
 
 
 DEFAULT_ARCHS = ["rmomo", "modumorph"]
+MIN_TRAIN_MIN = 1.0     # with time_limit_min: do not start (compile) a training with less time than this left
+EVAL_RESERVE_MIN = 3.0  # ... nor an evaluation (a few sets of ~100 robots, compilation included, on one GPU)
 
 
 @dataclasses.dataclass
@@ -46,6 +53,8 @@ class StudyConfig:
     dry_run: bool = False               # print the runs and stop
     side_by_side: bool = True           # train the seeds of a run in one program (experiments.run seeds=[...])
     run: List[str] = dataclasses.field(default_factory=list)   # extra experiments.run overrides (after --)
+    only: Optional[List[str]] = None    # these runs of the study file alone (None: all)
+    time_limit_min: Optional[float] = None   # end this invocation after about N minutes of training (resumable)
 
 
 register("study_schema", StudyConfig)
@@ -67,6 +76,10 @@ def plan(c: StudyConfig) -> list[StudyRun]:
         known = sorted(p.stem for p in (CONF_DIR / "study").glob("*.yaml"))
         raise ValueError(f"no study {c.name!r} ({f} does not exist); known: {', '.join(known)}")
     spec = yaml.safe_load(f.read_text())
+    names = list(spec["runs"])
+    unknown = [n for n in (c.only or []) if n not in names]
+    if unknown or c.only == []:
+        raise ValueError(f"only={c.only}: {f} has the runs {', '.join(names)}; expected a non-empty list of them")
     default = EnvConfig(task=c.env.task)
     env_over = [f"env={c.env.task}"] + [f"env.{k.name}={getattr(c.env, k.name)}" for k in dataclasses.fields(EnvConfig)
                                          if getattr(c.env, k.name) != getattr(default, k.name)]
@@ -74,6 +87,8 @@ def plan(c: StudyConfig) -> list[StudyRun]:
     runs = []
     for arch in (c.archs if c.archs is not None else spec.get("archs", DEFAULT_ARCHS)):
         for name, overrides in spec["runs"].items():
+            if c.only is not None and name not in c.only:
+                continue
             for seed in c.seeds:
                 d = Path(c.out) / c.name / f"{c.env.task}-{arch}-{name}-s{seed}"
                 runs.append(StudyRun(d, [*env_over, f"arch={arch}", f"seed={seed}", f"run_dir={d}", *common,
@@ -111,14 +126,46 @@ def run_study(c: StudyConfig) -> None:
         print(f"python -m experiments.run {' '.join(r.overrides)}   # then evaluate {r.sets}")
     if c.dry_run:
         return
+    checked = set()             # the evaluation sets exist for the runs' robots (before hours of training)
+    for r, cfg in zip(runs, configs):
+        key = (cfg.robots, cfg.robots_root, cfg.num_robots, tuple(r.sets))
+        if key not in checked:
+            checked.add(key)
+            for name in r.sets:
+                resolve_set(cfg, name)
+    if c.time_limit_min is not None and c.time_limit_min <= 0:
+        raise ValueError(f"time_limit_min={c.time_limit_min}: expected a positive number of minutes or null")
     use_compile_cache(configs[0].compile_cache if configs else None)
+    last = {r.dir: cfg.last_iteration() for r, cfg in zip(runs, configs)}
+    deadline = None if c.time_limit_min is None else time.monotonic() + 60.0 * c.time_limit_min
     todo = batches(runs, c.side_by_side)
     for i, (members, overrides) in enumerate(todo):
         print(f"[study] {i + 1}/{len(todo)}: {', '.join(str(r.dir) for r in members)}", flush=True)
-        train(compose_run_config(overrides))
+        if any((RunDir(r.dir).latest_step() or 0) < last[r.dir] for r in members):
+            if deadline is not None:
+                left = (deadline - time.monotonic()) / 60.0
+                if left < MIN_TRAIN_MIN:
+                    print(f"[study] time limit: {left:.1f} min left; rerun the same command to go on", flush=True)
+                    return
+                overrides = [*overrides, f"time_limit_min={left:.2f}"]
+            train(compose_run_config(overrides))
+        unfinished = [str(r.dir) for r in members if (RunDir(r.dir).latest_step() or 0) < last[r.dir]]
+        if unfinished:          # the time limit ended the training: a rerun resumes it
+            print(f"[study] not finished: {', '.join(unfinished)}; rerun the same command to go on", flush=True)
+            return
+        if deadline is not None and (deadline - time.monotonic()) / 60.0 < EVAL_RESERVE_MIN:
+            print(f"[study] time limit: evaluation of {', '.join(str(r.dir) for r in members)} left for the rerun",
+                  flush=True)
+            return
         if distributed.is_main():
             for r in members:
-                evaluate_run(r.dir, r.sets, episodes=c.episodes)
+                step = RunDir(r.dir).latest_step()
+                sets = [s for s in r.sets if not evaluated(r.dir, s, step, c.episodes)]
+                if sets != r.sets:
+                    print(f"[study] {r.dir}: {', '.join(s for s in r.sets if s not in sets)} already evaluated at "
+                          f"checkpoint {step}", flush=True)
+                if sets:
+                    evaluate_run(r.dir, sets, episodes=c.episodes)
         distributed.barrier("evaluated")
     print(f"[study] done; report: python -m experiments.report runs=[{Path(c.out) / c.name}] out=<dir>")
 

@@ -117,9 +117,10 @@ def test_study_plan_passes_env_options_and_extra_overrides(capsys):
                                              ("ab_geometry", {"rmomo", "modumorph"}, 3),
                                              ("ab_precision", {"rmomo", "modumorph"}, 3),
                                              ("kl_threshold", {"metamorph", "modumorph", "rmemo", "rmomo"}, 2)])
-def test_ab_studies_compose(capsys, name, archs, runs):
+def test_ab_studies_compose(capsys, unimals, name, archs, runs):
     """The issue-15 studies: their own architectures, the 100 M schedule for every run (the A/Bs: its first 20 M steps;
-    the KL-threshold choice: all of it), and every run's config valid (the study composes them all before printing)."""
+    the KL-threshold choice: all of it), and every run's config and evaluation sets valid (the study checks them all
+    before printing; the val set needs the original robots)."""
     from experiments import study
     assert study.main([name, "seeds=[0,1]", "dry_run=true"]) == 0
     lines = capsys.readouterr().out.strip().splitlines()
@@ -127,3 +128,36 @@ def test_ab_studies_compose(capsys, name, archs, runs):
     assert {ln.split("arch=")[1].split()[0] for ln in lines} == archs
     assert all("total_steps=100000000" in ln for ln in lines)
     assert all("stop_at=245" in ln for ln in lines) == (name != "kl_threshold")
+
+
+def test_study_only_selects_runs_and_names_the_known_ones(capsys, unimals):
+    from experiments import study
+    assert study.main(["ab_rmomo_cell", "only=[scale_after,residual]", "seeds=[3]", "dry_run=true"]) == 0
+    lines = capsys.readouterr().out.strip().splitlines()
+    assert [ln.split("run_dir=")[1].split()[0].rsplit("/", 1)[1] for ln in lines] == \
+        ["ft-rmomo-scale_after-s3", "ft-rmomo-residual-s3"]
+    assert study.main(["ab_rmomo_cell", "only=[scale_afte]", "dry_run=true"]) == 2
+    err = capsys.readouterr().err
+    assert "only=['scale_afte']" in err and "default, scale_after, residual, scale_after_residual" in err
+    # evaluation sets are checked before anything trains: gen/train has no val set
+    assert study.main(["ab_rmomo_cell", "only=[default]", "--", "robots=gen/train"]) == 2
+    assert "no val set" in capsys.readouterr().err
+
+
+def test_last_iteration_and_evaluated(tmp_path):
+    """What the study's time limit relies on: where a run ends (schedule or stop_at) and whether a set was evaluated
+    at a checkpoint with the same number of episodes."""
+    import json
+    from mjx_morph.eval.evaluate import evaluated, set_tag
+    cfg = compose_run_config(["total_steps=100000000"])
+    assert cfg.last_iteration() == 100_000_000 // 81_920 == 1220
+    assert compose_run_config(["total_steps=100000000", "stop_at=245"]).last_iteration() == 245
+    assert compose_run_config(["total_steps=1000"]).last_iteration() == 1         # at least one iteration
+    assert set_tag("unimal100/test70") == "unimal100_test70" and set_tag("t70:unimal100/test70") == "t70"
+    (tmp_path / "eval").mkdir()
+    (tmp_path / "eval" / "val.json").write_text(json.dumps({"checkpoint": 245, "episodes": 4}))
+    assert evaluated(tmp_path, "val", 245, 4)
+    assert not evaluated(tmp_path, "val", 240, 4) and not evaluated(tmp_path, "val", 245, 8)
+    assert not evaluated(tmp_path, "train", 245, 4)
+    (tmp_path / "eval" / "train.json").write_text("{trunc")
+    assert not evaluated(tmp_path, "train", 245, 4)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import json
+import re
 import subprocess
 import sys
 import zlib
@@ -298,3 +299,35 @@ def test_variants_of_an_architecture_are_reported_apart(tmp_path):
         (d / "config.yaml").write_text(yaml.safe_dump(cfg))
     md = build_report([root], tmp_path / "out").read_text()
     assert "| ft | rmomo, scale_after_cell=default | 2 |" in md and "| ft | rmomo, scale_after_cell=true | 1 |" in md
+
+
+def test_collect_keeps_the_small_artefacts_and_rebuilds_the_report(tmp_path):
+    """experiments.collect: config, metrics and eval JSON of every run under a folder (archive or folder), without
+    checkpoints or TensorBoard files; the report builds from what it kept; an oversized file is left out."""
+    import tarfile
+    from experiments import collect
+    study = tmp_path / "runs" / "study"
+    for arch in ("rmomo", "modumorph"):
+        d, _ = make_run(study, f"ft-{arch}-s0", arch=arch)
+        (d / "checkpoints" / "40").mkdir(parents=True)
+        (d / "checkpoints" / "40" / "state").write_bytes(b"x" * 4096)
+        (d / "tb").mkdir()
+        (d / "tb" / "events.out").write_bytes(b"x")
+    assert collect.main([f"runs=[{study}]", f"out={tmp_path / 'a.tar.gz'}"]) == 0
+    with tarfile.open(tmp_path / "a.tar.gz") as tar:
+        names = sorted(tar.getnames())
+    assert names == sorted(f"study/ft-{a}-s0/{f}" for a in ("rmomo", "modumorph")
+                           for f in ("config.yaml", "metrics.csv", "eval/train.json", "eval/test.json",
+                                     "eval/variants.json"))
+    assert collect.main([f"runs=[{study}]", f"out={tmp_path / 'results'}"]) == 0
+    kept = tmp_path / "results" / "study"
+    assert sorted(p.name for p in kept.iterdir()) == ["ft-modumorph-s0", "ft-rmomo-s0"]
+    assert not (kept / "ft-rmomo-s0" / "checkpoints").exists()
+    assert (kept / "ft-rmomo-s0" / "metrics.csv").read_bytes() == (study / "ft-rmomo-s0" / "metrics.csv").read_bytes()
+    # the report from the kept files is the report from the run directories
+    def text(dirs, out):          # without the build time
+        return re.sub(r"\d{4}-\d\d-\d\d \d\d:\d\d", "", build_report(find_run_dirs(dirs), out).read_text())
+    assert text([kept], tmp_path / "report") == text([study], tmp_path / "report0").replace(str(study), str(kept))
+    assert collect.main([f"runs=[{study / 'ft-rmomo-s0'}]", f"out={tmp_path / 'one'}", "max_file_mb=0.01"]) == 0
+    assert (tmp_path / "one" / "ft-rmomo-s0" / "config.yaml").exists()
+    assert not (tmp_path / "one" / "ft-rmomo-s0" / "eval" / "variants.json").exists()     # > 10 KB: left out

@@ -46,6 +46,21 @@ class EvalSet:
     groups: dict[str, list[int]] | None = None  # variants: change type -> robot indices
 
 
+def set_tag(name: str) -> str:
+    """The file stem under <run_dir>/eval that set `name` is written to (resolve_set's EvalSet.tag)."""
+    return name.partition(":")[0] if ":" in name else name.replace("/", "_")
+
+
+def evaluated(run_dir: str | Path, name: str, step: int, episodes: int) -> bool:
+    """Whether <run_dir>/eval holds set `name` evaluated at checkpoint `step` with `episodes` episodes per robot."""
+    f = Path(run_dir) / "eval" / f"{set_tag(name)}.json"
+    try:
+        s = json.loads(f.read_text())
+    except (OSError, ValueError):
+        return False
+    return s.get("checkpoint") == step and s.get("episodes") == episodes
+
+
 def resolve_set(cfg: RunConfig, name: str) -> EvalSet:
     """A set name of `experiments.evaluate` (a shortcut or any `load_set` name) -> the robots to evaluate."""
     if ":" in name:                                   # "<tag>:<set>": a set evaluated under another label

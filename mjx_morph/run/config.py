@@ -88,6 +88,11 @@ class RunConfig:
     def default_run_dir(self) -> Path:
         return Path("runs") / f"{self.env.task}-{self.arch}-s{self.seed}"
 
+    def last_iteration(self) -> int:
+        """The iteration the run ends at: its schedule's last (total_steps // steps per iteration), or stop_at."""
+        last = max(1, self.total_steps // self.ppo.steps_per_iter)
+        return last if self.stop_at is None else min(last, self.stop_at)
+
     def check(self) -> None:
         """Values the types cannot refuse: one line naming the key and what was expected (ValueError)."""
         positive = {"total_steps": self.total_steps, "checkpoint_every": self.checkpoint_every,

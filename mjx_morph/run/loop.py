@@ -207,6 +207,7 @@ def train(cfg: Any, experiment: Experiment | None = None, callbacks: Sequence[Ca
           ) -> Path | list[Path]:
     """Train (or resume) the run of `cfg`; returns its run directory (with `seeds`: the list of the seeds' run
     directories)."""
+    began = time.perf_counter()          # time_limit_min counts from here: building and compiling included
     cfg = to_schema(cfg)
     cfg.check()
     distributed.initialize(cfg)         # several processes: before any JAX computation (the device list)
@@ -264,7 +265,7 @@ def train(cfg: Any, experiment: Experiment | None = None, callbacks: Sequence[Ca
              for i, (m, run) in enumerate(zip(members, runs))]
     callbacks = default_callbacks(cfg) if callbacks is None else list(callbacks)
     # time_limit_min: end the invocation once the next iteration would not fit (1.5x the slowest one seen)
-    deadline = time.perf_counter() + 60.0 * cfg.time_limit_min if cfg.time_limit_min else None
+    deadline = began + 60.0 * cfg.time_limit_min if cfg.time_limit_min else None
     for loop in loops:
         for cb in callbacks:
             cb.on_start(loop)
