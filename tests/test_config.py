@@ -21,8 +21,9 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def test_composed_default_is_the_schema_default():
+    from mjx_morph.run.config import with_recommended
     cfg = compose_run_config([])
-    assert cfg == dataclasses.replace(RunConfig(), compile_cache=cfg.compile_cache)
+    assert cfg == with_recommended(dataclasses.replace(RunConfig(), compile_cache=cfg.compile_cache))
     assert cfg.ppo == PPOConfig() and cfg.env == EnvConfig()
 
 
@@ -138,9 +139,9 @@ def test_study_only_selects_runs_and_names_the_known_ones(capsys, unimals):
         ["ft-rmomo-scale_after-s3", "ft-rmomo-residual-s3"]
     assert study.main(["ab_rmomo_cell", "only=[scale_afte]", "dry_run=true"]) == 2
     err = capsys.readouterr().err
-    assert "only=['scale_afte']" in err and "default, scale_after, residual, scale_after_residual" in err
+    assert "only=['scale_afte']" in err and "scale_before, scale_after, residual, scale_after_residual" in err
     # evaluation sets are checked before anything trains: gen/train has no val set
-    assert study.main(["ab_rmomo_cell", "only=[default]", "--", "robots=gen/train"]) == 2
+    assert study.main(["ab_rmomo_cell", "only=[scale_before]", "--", "robots=gen/train"]) == 2
     assert "no val set" in capsys.readouterr().err
 
 
@@ -161,3 +162,24 @@ def test_last_iteration_and_evaluated(tmp_path):
     assert not evaluated(tmp_path, "train", 245, 4)
     (tmp_path / "eval" / "train.json").write_text("{trunc")
     assert not evaluated(tmp_path, "train", 245, 4)
+
+
+def test_recommended_model_options_are_filled_and_recorded(tmp_path):
+    """R-MoMo's measured scale_after_cell=True is filled in at composition (recorded explicitly in config.yaml) unless
+    the run names the key; a run directory saved with null (the spec's reading) refuses the new default with a hint,
+    and resumes with model.scale_after_cell=null."""
+    from mjx_morph.run import RunDir, RunDirError
+    from mjx_morph.run.config import FREE, IDENTITY
+    assert compose_run_config(["arch=rmomo"]).model.scale_after_cell is True
+    assert compose_run_config(["arch=grumomo"]).model.scale_after_cell is True
+    assert compose_run_config(["arch=rmomo", "model.scale_after_cell=false"]).model.scale_after_cell is False
+    assert compose_run_config(["arch=rmomo", "model.scale_after_cell=null"]).model.scale_after_cell is None
+    assert compose_run_config(["arch=modumorph"]).model.scale_after_cell is None      # not an option of modumorph
+    assert to_dict(compose_run_config(["arch=rmomo"]))["model"]["scale_after_cell"] is True
+    old = compose_run_config(["arch=rmomo", "model.scale_after_cell=null", f"run_dir={tmp_path}"])
+    (tmp_path / "config.yaml").write_text(yaml.safe_dump(to_dict(old), sort_keys=False))
+    new = compose_run_config(["arch=rmomo", f"run_dir={tmp_path}"])
+    with pytest.raises(RunDirError, match=r"model.scale_after_cell: saved None, now True \(saved null: pass "
+                                          r"model.scale_after_cell=null"):
+        RunDir(tmp_path, to_dict(new), IDENTITY, FREE)
+    RunDir(tmp_path, to_dict(old), IDENTITY, FREE)          # the same null: resumes

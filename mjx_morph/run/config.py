@@ -32,7 +32,7 @@ from omegaconf.errors import OmegaConfBaseException
 
 from ..nets.precision import DEFAULT as DEFAULT_PRECISION
 from ..nets.precision import check as check_precision
-from ..nets.zoo import ModelOptions
+from ..nets.zoo import RECOMMENDED, ModelOptions
 from ..ppo.config import PPOConfig
 from ..sim.env import EnvConfig
 from ..sim.tasks import TASKS
@@ -165,14 +165,26 @@ def config_error(e: BaseException, overrides: Iterable[str] = ()) -> ConfigError
 
 def compose(config_name: str, overrides: Iterable[str] = (), schema: type = RunConfig,
             config_dir: Path = CONF_DIR) -> Any:
-    """Compose `config_dir/config_name.yaml` with command-line `overrides` into an instance of `schema`."""
+    """Compose `config_dir/config_name.yaml` with command-line `overrides` into an instance of `schema`; a run's
+    config gets the architecture's RECOMMENDED model options it does not set (`with_recommended`)."""
     overrides = list(overrides)
     try:
         with initialize_config_dir(config_dir=str(config_dir), version_base=None):
             cfg = hydra_compose(config_name=config_name, overrides=overrides)
-        return to_schema(cfg, schema)
+        cfg = to_schema(cfg, schema)
     except (HydraException, OmegaConfBaseException) as e:
         raise config_error(e, overrides) from None
+    return with_recommended(cfg, overrides) if isinstance(cfg, RunConfig) else cfg
+
+
+def with_recommended(cfg: RunConfig, overrides: Iterable[str] = ()) -> RunConfig:
+    """`cfg` with the measured model options of its architecture (`nets.zoo.RECOMMENDED`) where the config leaves
+    them unset (null) and no override names them: `model.scale_after_cell=null` keeps the spec's reading (what a
+    run directory saved before the recommendation holds)."""
+    named = {o.lstrip("+~").split("=", 1)[0] for o in overrides}
+    fill = {k: v for k, v in RECOMMENDED.get(cfg.arch, {}).items()
+            if getattr(cfg.model, k) is None and f"model.{k}" not in named}
+    return dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, **fill)) if fill else cfg
 
 
 def compose_run_config(overrides: Iterable[str] = ()) -> RunConfig:
