@@ -5,7 +5,7 @@
     python -m experiments.study train_size archs=[rmomo] -- preset=smoke robots=gen/train   # extra run overrides
 
 A study file lists `runs` (name -> overrides of experiments.run), and optionally `common` (overrides of every run),
-`archs` (the default architectures) and `evaluate` (the sets to evaluate each run on).
+`archs` and `seeds` (the defaults of archs= and seeds=) and `evaluate` (the sets to evaluate each run on).
 
 Run directories: <out>/<study>/<env>-<arch>-<run>-s<seed> (default out: runs/studies). Each run is an ordinary
 `experiments.run` run: rerunning the study resumes unfinished runs; finished ones are not retrained, and a set
@@ -46,7 +46,7 @@ EVAL_RESERVE_MIN = 3.0  # ... nor an evaluation (a few sets of ~100 robots, comp
 class StudyConfig:
     name: str = MISSING                 # the study: a file of experiments/conf/study (without .yaml)
     archs: Optional[List[str]] = None   # None: the study file's `archs`, else [rmomo, modumorph]
-    seeds: List[int] = dataclasses.field(default_factory=lambda: [0])
+    seeds: Optional[List[int]] = None   # None: the study file's `seeds`, else [0]
     env: EnvConfig = dataclasses.field(default_factory=EnvConfig)   # env=<task> and env.<option>=... for every run
     out: str = "runs/studies"
     episodes: int = 4                   # evaluation episodes per robot
@@ -89,7 +89,7 @@ def plan(c: StudyConfig) -> list[StudyRun]:
         for name, overrides in spec["runs"].items():
             if c.only is not None and name not in c.only:
                 continue
-            for seed in c.seeds:
+            for seed in (c.seeds if c.seeds is not None else spec.get("seeds", [0])):
                 d = Path(c.out) / c.name / f"{c.env.task}-{arch}-{name}-s{seed}"
                 runs.append(StudyRun(d, [*env_over, f"arch={arch}", f"seed={seed}", f"run_dir={d}", *common,
                                          *overrides, *c.run],

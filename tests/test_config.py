@@ -183,3 +183,17 @@ def test_recommended_model_options_are_filled_and_recorded(tmp_path):
                                           r"model.scale_after_cell=null"):
         RunDir(tmp_path, to_dict(new), IDENTITY, FREE)
     RunDir(tmp_path, to_dict(old), IDENTITY, FREE)          # the same null: resumes
+
+
+def test_paper_study_runs_the_four_models_with_three_seeds(capsys, unimals):
+    """`experiments.study paper env=<task>`: the study file's seeds and archs are the defaults, every run on the
+    100 M schedule, evaluated on train, val, test and the variants."""
+    from experiments import study
+    assert study.main(["paper", "env=incline", "dry_run=true"]) == 0
+    lines = capsys.readouterr().out.strip().splitlines()
+    assert sorted((ln.split("arch=")[1].split()[0], ln.split("seed=")[1].split()[0]) for ln in lines) == \
+        sorted((a, str(s)) for a in ("metamorph", "modumorph", "rmemo", "rmomo") for s in (0, 1, 2))
+    assert all(ln.startswith("python -m experiments.run env=incline") and "total_steps=100000000" in ln
+               and ln.endswith("['train', 'val', 'test', 'variants']") for ln in lines)
+    assert study.main(["paper", "seeds=[5]", "dry_run=true"]) == 0
+    assert len(capsys.readouterr().out.strip().splitlines()) == 4
