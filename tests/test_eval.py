@@ -120,6 +120,21 @@ def test_evaluation_reports_progress_and_checks_its_input_first(evaluated_runs, 
         assert not (d / "eval").exists()
 
 
+def test_another_run_of_the_same_model_reuses_the_compiled_sweep(evaluated_runs, tmp_path):
+    """A second run of the same config (a study's other seed; here a copy of the metamorph run) builds no env and
+    compiles nothing, and its results equal the first run's (same parameters)."""
+    from conftest import EVAL_STEPS
+    d = tmp_path / "run"
+    shutil.copytree(evaluated_runs[1], d)
+    shutil.rmtree(d / "eval")
+    log = []
+    out = evaluate_run(d, ["train"], episodes=2, seed=0, zero_state_steps=10, episode_length=EVAL_STEPS,
+                       trace_steps=EVAL_STEPS, log=log.append)
+    assert not any("building the env" in ln or "compilation" in ln for ln in log), log
+    first = json.loads((evaluated_runs[1] / "eval" / "train.json").read_text())
+    assert out["train"]["per_robot"] == first["per_robot"]
+
+
 def test_set_names_labels_and_keys_by_robot_name(loaded):
     cfg, env, model, ts = loaded
     es = resolve_set(cfg, "heldout:variants/gear")

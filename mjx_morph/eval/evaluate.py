@@ -23,6 +23,7 @@ import csv
 import dataclasses
 import json
 import time
+from collections import OrderedDict
 from pathlib import Path
 from typing import Callable, Iterable, Sequence
 
@@ -44,6 +45,12 @@ class EvalSet:
     name: str                                 # robot set name
     robots: tuple[Morphology, ...]
     groups: dict[str, list[int]] | None = None  # variants: change type -> robot indices
+
+
+#: Sweepers (a set's env and its compiled sweep) kept across evaluate_run calls of one process, keyed by what the
+#: sweep's program depends on: the seeds of a study's run share robots and model, so only the first compiles.
+_SWEEPERS: OrderedDict[str, Sweeper] = OrderedDict()
+SWEEPERS_KEPT = 4
 
 
 def set_tag(name: str) -> str:
@@ -139,17 +146,22 @@ def evaluate_run(run_dir: str | Path, sets: Iterable[str | EvalSet] = ("train", 
     out_dir.mkdir(exist_ok=True)
     options = FAST_COMPILE if cfg.fast_compile else None
     env_steps = step * trainer.cfg.steps_per_iter
-    summaries, sweepers = {}, {}
+    summaries = {}
     meter = _Meter(log)
     for es in eval_sets:
         t0 = time.perf_counter()
         names = [m.name for m in es.robots]
-        compiling = tuple(names) not in sweepers
-        if compiling:                          # the same robots under another label: no new env, no recompilation
+        # the same robots under another label, or another run of the same model (a seed): no new env, no compilation
+        key = repr((cfg.env, cfg.arch, cfg.model, cfg.precision, cfg.fast_compile, cfg.robots_root,
+                    cfg.allow_outside_design_space, tuple(names), sorted(env_over.items()), trace_steps))
+        sweeper = _SWEEPERS.pop(key, None)
+        compiling = sweeper is None
+        if compiling:
             log(f"[mjx_morph] {es.tag}: building the env of {len(names)} robots ({es.name})")
-            sweepers[tuple(names)] = Sweeper(make_env_for(cfg, es.robots, **env_over), model, trace_steps,
-                                             compiler_options=options)
-        sweeper = sweepers[tuple(names)]
+            sweeper = Sweeper(make_env_for(cfg, es.robots, **env_over), model, trace_steps, compiler_options=options)
+        _SWEEPERS[key] = sweeper                          # the most recently used last
+        while len(_SWEEPERS) > SWEEPERS_KEPT:
+            _SWEEPERS.popitem(last=False)
         groups = es.groups or {None: list(range(len(es.robots)))}
         # one compiled size for all groups; on a CPU at most CPU_CHUNK episodes per call, so that progress shows
         chunk = max_envs or max(len(g) for g in groups.values()) * episodes
