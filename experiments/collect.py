@@ -5,16 +5,15 @@
     python -m experiments.collect runs=[runs/studies/ab_rmomo_cell] out=results/ab_rmomo_cell        # a folder
 
 Of each run directory found under `runs` (as experiments.report finds them), ARTEFACTS are kept: the resolved config,
-its history, metrics.csv and eval/*.json (figures are rebuilt by experiments.report). A folder of `runs` becomes one folder of the output
-named as it (`runs/studies/ab_rmomo_cell/ft-rmomo-default-s0` -> `ab_rmomo_cell/ft-rmomo-default-s0`); a run
+its history, metrics.csv and eval/*.json (figures are rebuilt by experiments.report). A folder of `runs` becomes
+one folder of the output named as it (`runs/studies/ab_rmomo_cell/ft-rmomo-default-s0` -> `ab_rmomo_cell/ft-rmomo-default-s0`); a run
 directory named directly keeps its own name. `out` ending in .tar.gz writes an archive, else a folder. A file over
 `max_file_mb` is left out and named (the results stay committable); experiments.report rebuilds from what is kept.
 """
 from __future__ import annotations
 
 import dataclasses
-import io
-import os
+import shutil
 import sys
 import tarfile
 from pathlib import Path
@@ -65,16 +64,11 @@ def collect(c: CollectConfig) -> None:
         out.parent.mkdir(parents=True, exist_ok=True)
         with tarfile.open(out, "w:gz") as tar:
             for f, name in files:
-                data = f.read_bytes()
-                info = tarfile.TarInfo(name)
-                info.size, info.mtime, info.mode = len(data), int(f.stat().st_mtime), 0o644
-                tar.addfile(info, io.BytesIO(data))
+                tar.add(f, arcname=name)
     else:
         for f, name in files:
-            dest = out / name
-            dest.parent.mkdir(parents=True, exist_ok=True)
-            dest.write_bytes(f.read_bytes())
-            os.utime(dest, (f.stat().st_atime, f.stat().st_mtime))
+            (out / name).parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy2(f, out / name)
     runs = len({f.parent.parent if f.parent.name == "eval" else f.parent for f, _ in files})
     size = sum(f.stat().st_size for f, _ in files)
     print(f"[mjx_morph] {len(files)} files of {runs} run directories ({size / 2 ** 20:.2f} MB) -> {out}")

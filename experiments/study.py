@@ -13,8 +13,10 @@ already evaluated at the run's last checkpoint (eval/<set>.json) is not evaluate
 study's runs a and b alone; `time_limit_min=N` ends the invocation after about N minutes of training (the run in
 training checkpoints, runs that did not finish are not evaluated; rerun to go on):
 
-    python -m experiments.study ab_rmomo_cell only=[default,scale_after] seeds=[0,1] time_limit_min=9 The seeds of a run train side by side in one program (`seeds=[...]` of experiments.run; those
-at the same checkpoint together), unless side_by_side=false. Afterwards: python -m experiments.report runs=[<out>/<study>] out=<dir>.
+    python -m experiments.study ab_rmomo_cell only=[scale_before,scale_after] seeds=[0,1] time_limit_min=9
+
+The seeds of a run train side by side in one program (`seeds=[...]` of experiments.run; those at the same checkpoint
+together), unless side_by_side=false. Afterwards: python -m experiments.report runs=[<out>/<study>] out=<dir>.
 
 On several hosts (the same command on each, with the distributed settings of experiments.run after --: README,
 "Several hosts") every process trains each run, process 0 alone evaluates it while the others wait.
@@ -22,6 +24,7 @@ On several hosts (the same command on each, with the distributed settings of exp
 from __future__ import annotations
 
 import dataclasses
+import math
 import sys
 import time
 from pathlib import Path
@@ -120,6 +123,8 @@ def batches(runs: list[StudyRun], side_by_side: bool) -> list[tuple[list[StudyRu
 
 
 def run_study(c: StudyConfig) -> None:
+    if c.time_limit_min is not None and c.time_limit_min <= 0:
+        raise ValueError(f"time_limit_min={c.time_limit_min}: expected a positive number of minutes or null")
     runs = plan(c)
     configs = [compose_run_config(r.overrides) for r in runs]     # every run's config is checked before any runs
     for r in runs:
@@ -133,33 +138,36 @@ def run_study(c: StudyConfig) -> None:
             checked.add(key)
             for name in r.sets:
                 resolve_set(cfg, name)
-    if c.time_limit_min is not None and c.time_limit_min <= 0:
-        raise ValueError(f"time_limit_min={c.time_limit_min}: expected a positive number of minutes or null")
     use_compile_cache(configs[0].compile_cache if configs else None)
     last = {r.dir: cfg.last_iteration() for r, cfg in zip(runs, configs)}
     deadline = None if c.time_limit_min is None else time.monotonic() + 60.0 * c.time_limit_min
+
+    def unfinished(members: list[StudyRun]) -> list[str]:
+        return [str(r.dir) for r in members if (RunDir(r.dir).latest_step() or 0) < last[r.dir]]
+
+    def minutes_left() -> float:
+        return math.inf if deadline is None else (deadline - time.monotonic()) / 60.0
+
     todo = batches(runs, c.side_by_side)
     for i, (members, overrides) in enumerate(todo):
         print(f"[study] {i + 1}/{len(todo)}: {', '.join(str(r.dir) for r in members)}", flush=True)
-        if any((RunDir(r.dir).latest_step() or 0) < last[r.dir] for r in members):
-            if deadline is not None:
-                left = (deadline - time.monotonic()) / 60.0
-                if left < MIN_TRAIN_MIN:
-                    print(f"[study] time limit: {left:.1f} min left; rerun the same command to go on", flush=True)
-                    return
-                overrides = [*overrides, f"time_limit_min={left:.2f}"]
-            train(compose_run_config(overrides))
-        unfinished = [str(r.dir) for r in members if (RunDir(r.dir).latest_step() or 0) < last[r.dir]]
-        if unfinished:          # the time limit ended the training: a rerun resumes it
-            print(f"[study] not finished: {', '.join(unfinished)}; rerun the same command to go on", flush=True)
-            return
-        if deadline is not None and (deadline - time.monotonic()) / 60.0 < EVAL_RESERVE_MIN:
+        if unfinished(members):
+            left = minutes_left()
+            if left < MIN_TRAIN_MIN:
+                print(f"[study] time limit: {left:.1f} min left; rerun the same command to go on", flush=True)
+                return
+            train(compose_run_config(overrides if deadline is None else [*overrides, f"time_limit_min={left:.2f}"]))
+            if unfinished(members):          # the time limit ended the training: a rerun resumes it
+                print(f"[study] not finished: {', '.join(unfinished(members))}; rerun the same command to go on",
+                      flush=True)
+                return
+        if minutes_left() < EVAL_RESERVE_MIN:
             print(f"[study] time limit: evaluation of {', '.join(str(r.dir) for r in members)} left for the rerun",
                   flush=True)
             return
         if distributed.is_main():
             for r in members:
-                step = RunDir(r.dir).latest_step()
+                step = RunDir(r.dir).latest_step()      # what evaluate_run evaluates
                 sets = [s for s in r.sets if not evaluated(r.dir, s, step, c.episodes)]
                 if sets != r.sets:
                     print(f"[study] {r.dir}: {', '.join(s for s in r.sets if s not in sets)} already evaluated at "

@@ -98,9 +98,9 @@ def resolve_set(cfg: RunConfig, name: str) -> EvalSet:
         robots = [m for m in load_set(full, root, allow_outside_design_space=outside).robots
                   if keep is None or variant_change(m.name)[0] in keep]
         groups = {c: [i for i, m in enumerate(robots) if variant_change(m.name)[1] == c] for c in CHANGE_TYPES}
-        return EvalSet(name.replace("/", "_"), full, tuple(robots), {c: g for c, g in groups.items() if g})
+        return EvalSet(set_tag(name), full, tuple(robots), {c: g for c, g in groups.items() if g})
     rs = load_set(name, root, allow_outside_design_space=outside)
-    return EvalSet(name.replace("/", "_"), name, rs.robots)
+    return EvalSet(set_tag(name), name, rs.robots)
 
 
 def _per_robot(res: SweepResult, robot_of: np.ndarray, names: Sequence[str]) -> dict[str, float]:

@@ -29,6 +29,10 @@ class PPOConfig:
     def steps_per_iter(self) -> int:
         return self.num_envs * self.rollout_len
 
+    def iterations(self, total_steps: int) -> int:
+        """Iterations of a `total_steps` schedule (at least one)."""
+        return max(1, int(total_steps) // self.steps_per_iter)
+
     def for_model(self, recurrent: bool) -> "PPOConfig":
         """Feed-forward models train on single transitions (W = 1, B = 0), as the original PPO."""
         return self if recurrent else dataclasses.replace(self, window=1, burn_in=0)

@@ -164,7 +164,7 @@ class Trainer:
         config.check()
         self.env, self.model, self.cfg = env, model, config
         self.total_steps = int(total_steps)
-        self.num_iters = max(1, self.total_steps // config.steps_per_iter)
+        self.num_iters = config.iterations(self.total_steps)
         self.num_windows = config.rollout_len // config.window      # K per env
         self.mb_windows = config.minibatch_size // config.window
         self.num_minibatches = config.num_envs * self.num_windows // self.mb_windows

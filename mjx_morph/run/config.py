@@ -89,8 +89,8 @@ class RunConfig:
         return Path("runs") / f"{self.env.task}-{self.arch}-s{self.seed}"
 
     def last_iteration(self) -> int:
-        """The iteration the run ends at: its schedule's last (total_steps // steps per iteration), or stop_at."""
-        last = max(1, self.total_steps // self.ppo.steps_per_iter)
+        """The iteration the run ends at: its schedule's last (as the Trainer counts it), or stop_at."""
+        last = self.ppo.iterations(self.total_steps)
         return last if self.stop_at is None else min(last, self.stop_at)
 
     def check(self) -> None:
