@@ -5,9 +5,10 @@
     python -m experiments.collect runs=[runs/studies/ab_rmomo_cell] out=results/ab_rmomo_cell        # a folder
 
 Of each run directory found under `runs` (as experiments.report finds them), ARTEFACTS are kept: the resolved config,
-its history, metrics.csv and eval/*.json (figures are rebuilt by experiments.report). A folder of `runs` becomes
-one folder of the output named as it (`runs/studies/ab_rmomo_cell/ft-rmomo-default-s0` -> `ab_rmomo_cell/ft-rmomo-default-s0`); a run
-directory named directly keeps its own name. `out` ending in .tar.gz writes an archive, else a folder. A file over
+its history, the devices of each invocation (devices.yaml), metrics.csv and eval/*.json (figures are rebuilt by
+experiments.report). A folder of `runs` becomes one folder of the output named as it
+(`runs/studies/ab_rmomo_cell/ft-rmomo-default-s0` -> `ab_rmomo_cell/ft-rmomo-default-s0`); a run directory named
+directly keeps its own name. `out` ending in .tar.gz writes an archive, else a folder. A file over
 `max_file_mb` is left out and named (the results stay committable); experiments.report rebuilds from what is kept.
 """
 from __future__ import annotations
@@ -27,7 +28,7 @@ from mjx_morph.run import register
 from . import cli
 
 #: what a run directory keeps, relative to it (glob patterns)
-ARTEFACTS = ("config.yaml", "config_history.yaml", "metrics.csv", "eval/*.json")
+ARTEFACTS = ("config.yaml", "config_history.yaml", "devices.yaml", "metrics.csv", "eval/*.json")
 
 
 @dataclasses.dataclass

@@ -313,21 +313,35 @@ def test_collect_keeps_the_small_artefacts_and_rebuilds_the_report(tmp_path):
         (d / "checkpoints" / "40" / "state").write_bytes(b"x" * 4096)
         (d / "tb").mkdir()
         (d / "tb" / "events.out").write_bytes(b"x")
+    # the rmomo run was started on an H100 and resumed on an H200; the modumorph run is older than devices.yaml
+    entry = dict(platform="gpu", num_devices=1, processes=1)
+    (study / "ft-rmomo-s0" / "devices.yaml").write_text(yaml.safe_dump([
+        dict(started="2025-01-01T00:00:00+00:00", start_iteration=0, device_kind="NVIDIA H100 80GB HBM3", **entry),
+        dict(started="2025-01-02T00:00:00+00:00", start_iteration=20, device_kind="NVIDIA H200", **entry),
+        dict(started="2025-01-03T00:00:00+00:00", start_iteration=30, device_kind="NVIDIA H200", **entry)]))
     assert collect.main([f"runs=[{study}]", f"out={tmp_path / 'a.tar.gz'}"]) == 0
     with tarfile.open(tmp_path / "a.tar.gz") as tar:
         names = sorted(tar.getnames())
-    assert names == sorted(f"study/ft-{a}-s0/{f}" for a in ("rmomo", "modumorph")
-                           for f in ("config.yaml", "metrics.csv", "eval/train.json", "eval/test.json",
-                                     "eval/variants.json"))
+    assert names == sorted([f"study/ft-{a}-s0/{f}" for a in ("rmomo", "modumorph")
+                            for f in ("config.yaml", "metrics.csv", "eval/train.json", "eval/test.json",
+                                      "eval/variants.json")] + ["study/ft-rmomo-s0/devices.yaml"])
     assert collect.main([f"runs=[{study}]", f"out={tmp_path / 'results'}"]) == 0
     kept = tmp_path / "results" / "study"
     assert sorted(p.name for p in kept.iterdir()) == ["ft-modumorph-s0", "ft-rmomo-s0"]
     assert not (kept / "ft-rmomo-s0" / "checkpoints").exists()
-    assert (kept / "ft-rmomo-s0" / "metrics.csv").read_bytes() == (study / "ft-rmomo-s0" / "metrics.csv").read_bytes()
+    for f in ("metrics.csv", "devices.yaml"):
+        assert (kept / "ft-rmomo-s0" / f).read_bytes() == (study / "ft-rmomo-s0" / f).read_bytes()
     # the report from the kept files is the report from the run directories
     def text(dirs, out):          # without the build time
         return re.sub(r"\d{4}-\d\d-\d\d \d\d:\d\d", "", build_report(find_run_dirs(dirs), out).read_text())
     assert text([kept], tmp_path / "report") == text([study], tmp_path / "report0").replace(str(study), str(kept))
+    # the runs table names each run's devices (wall hours depend on them); "?" for a run without devices.yaml
+    md = (tmp_path / "report" / "report.md").read_text()
+    row = lambda arch: next(l for l in md.splitlines() if l.startswith(f"| `") and f"ft-{arch}-s0`" in l)
+    assert "| device |" in md and "| NVIDIA H100 80GB HBM3 + NVIDIA H200 |" in row("rmomo")
+    assert "| ? |" in row("modumorph")
+    devices = {Path(r["run"]).name: r["device"] for r in _csv(tmp_path / "report" / "runs.csv")}
+    assert devices == {"ft-rmomo-s0": "NVIDIA H100 80GB HBM3 + NVIDIA H200", "ft-modumorph-s0": "?"}
     assert collect.main([f"runs=[{study / 'ft-rmomo-s0'}]", f"out={tmp_path / 'one'}", "max_file_mb=0.01"]) == 0
     assert (tmp_path / "one" / "ft-rmomo-s0" / "config.yaml").exists()
     assert not (tmp_path / "one" / "ft-rmomo-s0" / "eval" / "variants.json").exists()     # > 10 KB: left out

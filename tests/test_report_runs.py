@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import re
 
+import jax
+
 from mjx_morph.eval.report import build_report
 
 
@@ -21,3 +23,4 @@ def test_report_builds_from_two_tiny_runs(evaluated_runs, tmp_path):
     assert set(expected) <= drawn and drawn <= {l.split("/")[-1] for l in linked}
     assert "rmomo" in text and "metamorph" in text
     assert "### Parameters" in text and re.search(r"/ 100 ?M steps", text)    # parameter and wall-clock tables
+    assert f"| {jax.devices()[0].device_kind} |" in text       # the runs' device, from devices.yaml

@@ -50,6 +50,11 @@ def test_smoke_run_writes_everything(full_run):
         assert np.isfinite(r["loss"]) and r["sps"] > 0 and r["instabilities"] == 0
     assert any(f.name.startswith("events") for f in (d / "tb").iterdir())
     assert (d / "learning_curve.png").stat().st_size > 5000
+    [entry] = yaml.safe_load((d / "devices.yaml").read_text())      # one invocation, on this machine's devices
+    dev = jax.devices()[0]
+    assert entry["start_iteration"] == 0 and entry["device_kind"] == dev.device_kind
+    assert entry["platform"] == dev.platform and entry["num_devices"] >= 1 and entry["processes"] == 1
+    assert entry["started"].endswith("+00:00")                         # ISO time, UTC
 
 
 def test_interrupted_and_resumed_run_ends_like_uninterrupted(full_run, exp, tmp_path):
@@ -64,6 +69,9 @@ def test_interrupted_and_resumed_run_ends_like_uninterrupted(full_run, exp, tmp_
     for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b)):
         np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
     assert [int(r["iteration"]) for r in RunDir(d).read_metrics()] == [1, 2, 3]
+    invocations = yaml.safe_load((d / "devices.yaml").read_text())  # the resume appended its own entry
+    assert [e["start_iteration"] for e in invocations] == [0, 2]
+    assert {e["device_kind"] for e in invocations} == {jax.devices()[0].device_kind}
 
 
 def test_stop_at_ends_the_run_for_good(exp, tmp_path):

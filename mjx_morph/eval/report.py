@@ -87,22 +87,25 @@ def _display(p: Path) -> str:
 def _runs_table(doc: Document, ctx: ReportContext) -> None:
     runs = ctx.runs
     header = ["run", "task", "arch", "seed", "kind", "num_robots", "context_features", "iterations", "env_steps",
-              "wall_h", "h_per_100M", "mean_sps", "final_train_return", "evals"]
+              "device", "wall_h", "h_per_100M", "mean_sps", "final_train_return", "evals"]
     rows, md = [], []
     for r in runs:
         label = r.context_label
         evals = ", ".join(sorted(r.evals)) or "none"
+        device = " + ".join(r.devices) or "?"
         rows.append([_display(r.path), r.task, r.name, r.seed, r.kind, r.num_robots if r.num_robots else "all", label,
-                     r.iterations, r.final_steps, r.wall_hours(), r.hours_per_100m(), r.mean_sps(),
+                     r.iterations, r.final_steps, device, r.wall_hours(), r.hours_per_100m(), r.mean_sps(),
                      r.final_train_return(), evals])
         md.append([f"`{_display(r.path)}`", r.task, r.name, r.seed, r.kind, r.num_robots or "all", label, r.iterations,
-                   fmt_steps(r.final_steps), fmt(r.wall_hours(), 2), fmt(r.hours_per_100m(), 2), fmt(r.mean_sps(), 0),
-                   fmt(r.final_train_return()), evals])
+                   fmt_steps(r.final_steps), device, fmt(r.wall_hours(), 2), fmt(r.hours_per_100m(), 2),
+                   fmt(r.mean_sps(), 0), fmt(r.final_train_return()), evals])
     doc.table("Runs", "runs", header, rows,
-              ["run", "task", "arch", "seed", "kind", "robots", "context", "iterations", "env steps", "wall h",
-               "wall h / 100 M steps", "mean steps/s", "final train return", "evals"], md,
+              ["run", "task", "arch", "seed", "kind", "robots", "context", "iterations", "env steps", "device",
+               "wall h", "wall h / 100 M steps", "mean steps/s", "final train return", "evals"], md,
               note="final train return: mean episode return of the last ~5% of iterations; wall h / 100 M steps: "
-                   "sum(wall_s) / final env steps x 1e8; mean steps/s excludes the first iteration (compilation).",
+                   "sum(wall_s) / final env steps x 1e8, on the run's device (devices.yaml; ?: not recorded), so "
+                   "compare it only between runs of one device; mean steps/s excludes the first iteration "
+                   "(compilation).",
               lead=True)
 
 

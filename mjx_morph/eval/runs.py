@@ -1,13 +1,14 @@
 """Finished run directories: finding them and reading what they hold.
 
     dirs = find_run_dirs(["runs/studies/train_size"])       # run directories at or below the given paths
-    runs = [read_run(d) for d in dirs]                      # config.yaml, metrics.csv, eval/<tag>.json
+    runs = [read_run(d) for d in dirs]                      # config.yaml, metrics.csv, eval/<tag>.json, devices.yaml
     classify(runs)                                          # run.kind: main | size | context | other
     name_variants(runs)                                     # run.name: arch, plus the settings that tell apart
                                                             # runs of one task and arch (an A/B study's arms)
 
-Per run directory (read only): `config.yaml` (required), `metrics.csv` of `mjx_morph.ppo.loop` and `eval/<tag>.json`
-of `mjx_morph.eval.evaluate`; problems with the optional files are kept in `Run.notes` rather than raised.
+Per run directory (read only): `config.yaml` (required), `metrics.csv` of `mjx_morph.ppo.loop`, `eval/<tag>.json`
+of `mjx_morph.eval.evaluate` and `devices.yaml` (the devices of each invocation; absent in older runs); problems with
+the optional files are kept in `Run.notes` rather than raised.
 """
 from __future__ import annotations
 
@@ -91,6 +92,7 @@ class Run:
     metrics: dict[str, np.ndarray] = field(default_factory=dict)
     evals: dict[str, dict] = field(default_factory=dict)
     notes: list[str] = field(default_factory=list)      # problems reading this run
+    invocations: list[dict] = field(default_factory=list)   # devices.yaml: one entry per start or resume
     kind: str = "main"                                  # main | size | context | other: see classify()
     variant: str = ""                                   # what sets this run apart from others of its task and
                                                         # arch (name_variants), e.g. "scale_after_cell=true"
@@ -147,6 +149,16 @@ class Run:
             return float(np.nanmax(s))
         steps = [e.get("env_steps") for e in self.evals.values() if isinstance(e.get("env_steps"), (int, float))]
         return float(max(steps)) if steps else float("nan")
+
+    @property
+    def devices(self) -> list[str]:
+        """The distinct device kinds the run was trained on (e.g. ["NVIDIA H200"]), in order; [] when unknown."""
+        out = []
+        for e in self.invocations:
+            kind = e.get("device_kind") if isinstance(e, dict) else None
+            if kind and str(kind) not in out:
+                out.append(str(kind))
+        return out
 
     @property
     def iterations(self) -> int:
@@ -212,6 +224,15 @@ def read_run(path: str | Path) -> Run:
             run.notes.append(f"{g.name} unreadable ({e})")
             continue
         run.evals[g.stem] = d
+    f = path / "devices.yaml"
+    if f.is_file():
+        try:
+            inv = yaml.safe_load(f.read_text()) or []
+            if not isinstance(inv, list):
+                raise ValueError("not a list")
+            run.invocations = inv
+        except (OSError, ValueError, yaml.YAMLError) as e:
+            run.notes.append(f"devices.yaml unreadable ({e})")
     return run
 
 

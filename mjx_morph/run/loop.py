@@ -254,6 +254,7 @@ def train(cfg: Any, experiment: Experiment | None = None, callbacks: Sequence[Ca
             if moved:
                 print(f"[mjx_morph] checkpoints {moved} moved to {run.path / 'checkpoints.orphaned'}", flush=True)
         run.truncate_metrics(latest or 0)      # rows after the checkpoint (or of a start that never saved one)
+        run.record_invocation(latest or 0, trainer.num_devices)
         if latest is not None:
             print(f"[mjx_morph] resumed from {run.path / 'checkpoints' / str(latest)} (iteration {latest})",
                   flush=True)

@@ -7,6 +7,8 @@
     <run_dir>/learning_curve.png
 
     <run_dir>/config_history.yaml  changes accepted on a resume (`allow_changes`), in order
+    <run_dir>/devices.yaml         one entry per invocation (start or resume): when, from which iteration, on what
+                                   devices (platform, device_kind, num_devices, processes): wall times depend on it
 
 Opening a run directory (`RunDir(...)`) writes nothing; `create()` makes the directory and writes config.yaml once
 the caller has validated everything else, so a failed start leaves no trace.
@@ -26,8 +28,8 @@ logged again by the resumed run; TensorBoard's events are rebuilt from the rows 
 
 Several processes (`mjx_morph/run/distributed.py`): every process opens the run directory and takes part in saving
 and restoring checkpoints (Orbax writes and reads each process's shards of the global arrays); only process 0
-writes config.yaml, metrics, TensorBoard and moves files. A reader (`RunDir(path)` without a config) restores on
-its own process, so process 0 alone can load a checkpoint (evaluation) while the others wait.
+writes config.yaml, devices.yaml, metrics, TensorBoard and moves files. A reader (`RunDir(path)` without a config)
+restores on its own process, so process 0 alone can load a checkpoint (evaluation) while the others wait.
 """
 from __future__ import annotations
 
@@ -156,6 +158,17 @@ class RunDir:
         except OSError as e:
             raise RunDirError(f"{self.path}: cannot write the run directory ({e.strerror or e}); "
                               "choose another run_dir") from None
+
+    def record_invocation(self, start_iteration: int, num_devices: int) -> None:
+        """Append this invocation's entry to devices.yaml (process 0; the others write nothing)."""
+        if not is_main():
+            return
+        dev = jax.devices()[0]
+        entry = {"started": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+                 "start_iteration": int(start_iteration), "platform": dev.platform, "device_kind": dev.device_kind,
+                 "num_devices": int(num_devices), "processes": jax.process_count()}
+        with (self.path / "devices.yaml").open("a") as fh:
+            fh.write(yaml.safe_dump([entry], sort_keys=False))
 
     # ---- checkpoints ---------------------------------------------------------------------------------------
     @property
