@@ -285,7 +285,7 @@ def test_variants_of_an_architecture_are_reported_apart(tmp_path):
         return Run(Path(f"r{seed}"), cfg)
     runs = [run(0), run(1), run(0, True), run(1, True), run(0, True, "bf16"), run(0, extra={"arch": "modumorph"})]
     name_variants(runs)
-    assert [r.name for r in runs] == ["rmomo, scale_after_cell=default"] * 2 + ["rmomo, scale_after_cell=true"] * 3 \
+    assert [r.name for r in runs] == ["rmomo, scale_after_cell=null"] * 2 + ["rmomo, scale_after_cell=true"] * 3 \
         + ["modumorph"]
     same = [run(0, True, "bf16"), run(1, True, "tf32")]
     name_variants(same)
@@ -298,7 +298,7 @@ def test_variants_of_an_architecture_are_reported_apart(tmp_path):
         cfg["model"] = {"scale_after_cell": flag}
         (d / "config.yaml").write_text(yaml.safe_dump(cfg))
     md = build_report([root], tmp_path / "out").read_text()
-    assert "| ft | rmomo, scale_after_cell=default | 2 |" in md and "| ft | rmomo, scale_after_cell=true | 1 |" in md
+    assert "| ft | rmomo, scale_after_cell=null | 2 |" in md and "| ft | rmomo, scale_after_cell=true | 1 |" in md
 
 
 def test_collect_keeps_the_small_artefacts_and_rebuilds_the_report(tmp_path):

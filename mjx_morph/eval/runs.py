@@ -259,7 +259,7 @@ NOT_VARIANT_KEYS = ("env.task", "env.context_features")
 
 def _value(v) -> str:
     if v is None:
-        return "default"       # a model option left to the architecture's own value
+        return "null"          # a model option left to make_model's own reading (config.yaml's value, verbatim)
     return str(v).lower() if isinstance(v, bool) else str(v)
 
 
