@@ -15,6 +15,7 @@ import pytest
 import yaml
 from scipy import stats
 
+from mjx_morph.eval import plots
 from mjx_morph.eval.report import build_report
 from mjx_morph.eval.runs import NotARunDir, Run, classify, find_run_dirs, name_variants
 from mjx_morph.eval.stats import TASK_RANGES, mean_curve
@@ -237,6 +238,32 @@ def test_mean_curve_band():
     # a shorter seed: beyond its end only the longer one counts, without a band
     grid, m, lo, _, n = mean_curve([(x, x), (x[:50], x[:50] + 2)], points=100, smooth=False)
     assert n[0] == 2 and n[-1] == 1 and np.isnan(lo[-1]) and m[-1] == pytest.approx(grid[-1])
+
+
+def test_learning_curves_show_seeds_below_three_and_a_band_from_three(tmp_path, monkeypatch):
+    """2 seeds: each seed drawn thin and no band (t = 12.7 makes it meaningless); 3 seeds: a band, no seed lines."""
+    for seed in (0, 1):
+        make_run(tmp_path / "runs", f"ft-rmomo-s{seed}", arch="rmomo", seed=seed, evals=())
+    for seed in (0, 1, 2):
+        make_run(tmp_path / "runs", f"ft-modumorph-s{seed}", arch="modumorph", seed=seed, evals=())
+    seen = {}
+
+    def capture(curves, out, **kw):
+        seen.update(curves=curves, members=kw["members"])
+        return real(curves, out, **kw)
+    real = plots.mean_curves
+    monkeypatch.setattr(plots, "mean_curves", capture)
+    build_report([tmp_path / "runs"], tmp_path / "report")
+    _, _, lo2, hi2 = seen["curves"]["rmomo"]
+    _, _, lo3, hi3 = seen["curves"]["modumorph"]
+    assert lo2 is None and hi2 is None and len(seen["members"]["rmomo"]) == 2
+    assert np.isfinite(lo3).any() and np.all(lo3[np.isfinite(lo3)] <= hi3[np.isfinite(lo3)])
+    assert seen["members"]["modumorph"] == []
+    # each thin line is that seed's own curve (40 iterations: a smoothing window of 1), ending at its last return
+    for (x, y), seed in zip(seen["members"]["rmomo"], (0, 1)):
+        rows = _csv(tmp_path / "runs" / f"ft-rmomo-s{seed}" / "metrics.csv")
+        assert x[-1] == float(rows[-1]["env_steps"])
+        assert y[-1] == pytest.approx(float(rows[-1]["episode_return"]), abs=1e-6)
 
 
 def test_find_run_dirs(tmp_path):

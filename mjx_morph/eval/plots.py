@@ -43,12 +43,15 @@ def _millions(ax) -> None:
 
 
 def mean_curves(curves: Mapping[str, tuple], out: str | Path, title: str = "", xlabel: str = "env steps",
-                ylabel: str = "mean episode return", labels: Mapping[str, str] | None = None) -> Path:
+                ylabel: str = "mean episode return", labels: Mapping[str, str] | None = None,
+                members: Mapping[str, Sequence[tuple]] | None = None) -> Path:
     """One line per key from `curves[key] = (x, mean, lo, hi)`, shaded between lo and hi where finite (pass
-    lo = hi = None for no band)."""
+    lo = hi = None for no band); `members[key]`: curves (x, y) drawn thin in the key's colour (e.g. each seed)."""
     colors = arch_colors(list(curves))
     fig, ax = plt.subplots(figsize=(7, 4.2))
     for key, (x, mean, lo, hi) in curves.items():
+        for mx, my in (members or {}).get(key, ()):
+            ax.plot(mx, my, color=colors[key], lw=0.8, alpha=0.6)
         x, mean = np.asarray(x, float), np.asarray(mean, float)
         ax.plot(x, mean, color=colors[key], lw=2, label=(labels or {}).get(key, key))
         if lo is not None and hi is not None:

@@ -109,25 +109,31 @@ def _runs_table(doc: Document, ctx: ReportContext) -> None:
               lead=True)
 
 
+#: below this many seeds a learning curve shows each seed (thin) instead of a 95% CI band (t = 12.7 with 2 seeds)
+BAND_MIN_SEEDS = 3
+
+
 def _learning_curves(doc: Document, ctx: ReportContext) -> None:
     tasks, main = ctx.tasks, ctx.main
     for t in tasks:
-        curves, labels = {}, {}
+        curves, labels, members = {}, {}, {}
         for a, rs in main[t].items():
             cs = [(r.metrics["env_steps"], r.metrics["episode_return"]) for r in rs
                   if "env_steps" in r.metrics and "episode_return" in r.metrics]
             grid, m, lo, hi, _ = mean_curve(cs)
             if grid.size:
-                curves[a] = (grid, m, lo, hi)
+                banded = len(cs) >= BAND_MIN_SEEDS
+                curves[a] = (grid, m, lo if banded else None, hi if banded else None)
+                members[a] = [] if banded or len(cs) < 2 else [mean_curve([c])[:2] for c in cs]
                 labels[a] = f"{a} ({len(cs)} seed{'s' if len(cs) != 1 else ''})"
         if not curves:
             doc.missing.append(f"{t}: learning curves — no main run has episode returns in metrics.csv")
             continue
         p = plots.mean_curves(curves, doc.out / f"learning_curve_{t}.png", title=f"{t}: training return",
-                              labels=labels)
-        doc.figure(p, f"{t}: mean training episode return against env steps, mean over seeds "
-                      f"(band: 95% CI where at least two seeds cover a point; main runs: all "
-                      f"train robots and context features).")
+                              labels=labels, members=members)
+        doc.figure(p, f"{t}: mean training episode return against env steps, mean over seeds (band: 95% CI "
+                      f"where at least {BAND_MIN_SEEDS} seeds cover a point; with 2 seeds, each seed as a thin "
+                      f"line; main runs: all train robots and context features).")
 
 
 def _returns(doc: Document, ctx: ReportContext) -> None:
