@@ -5,8 +5,9 @@
     python -m experiments.report runs=[runs] out=reports/all 'compare=[rmomo,metamorph]'
 
 Writes <out>/report.md with learning curves, zero-shot returns (train/test/variants), per-robot differences,
-reward per timestep, training-set-size and single-context-feature figures (PNG) and tables (also as CSV); what
-could not be drawn is listed under "Missing". See mjx_morph.eval.report.
+whether the paper's claims are reproduced (claims.csv), reward per timestep, training-set-size and
+single-context-feature figures (PNG) and tables (also as CSV); what could not be drawn is listed under "Missing".
+See mjx_morph.eval.report.
 """
 from __future__ import annotations
 

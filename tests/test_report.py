@@ -16,9 +16,9 @@ import yaml
 from scipy import stats
 
 from mjx_morph.eval import plots
-from mjx_morph.eval.report import build_report
+from mjx_morph.eval.report import CLAIMS, build_report
 from mjx_morph.eval.runs import NotARunDir, Run, classify, find_run_dirs, name_variants
-from mjx_morph.eval.stats import TASK_RANGES, mean_curve
+from mjx_morph.eval.stats import TASK_RANGES, claim_test, mean_curve
 from mjx_morph.unimal.variants import CHANGE_TYPES
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -55,8 +55,8 @@ def _summary(task, arch, tag, per_robot, recurrent, rng):
 
 
 def make_run(root: Path, name: str, task="ft", arch="rmomo", seed=0, num_robots=None, context=None,
-             evals=("train", "test", "variants"), metrics=True, iters=40) -> tuple[Path, dict]:
-    """A synthetic run directory; returns (path, {tag: per_robot})."""
+             evals=("train", "test", "variants"), metrics=True, iters=40, returns=(50, 3000)) -> tuple[Path, dict]:
+    """A synthetic run directory, per-robot returns uniform in `returns`; returns (path, {tag: per_robot})."""
     rng = np.random.default_rng(zlib.crc32(f"{name}|{task}|{arch}|{seed}".encode()))
     d = root / name
     (d / "eval").mkdir(parents=True)
@@ -76,7 +76,7 @@ def make_run(root: Path, name: str, task="ft", arch="rmomo", seed=0, num_robots=
     names = {"train": TRAIN[: num_robots or 100], "test": TEST, "variants": VARIANTS}
     per = {}
     for tag in evals:
-        pr = {k: float(rng.uniform(50, 3000)) for k in names[tag]}
+        pr = {k: float(rng.uniform(*returns)) for k in names[tag]}
         per[tag] = pr
         (d / "eval" / f"{tag}.json").write_text(json.dumps(
             _summary(task, arch, tag, pr, arch == "rmomo", rng), indent=1))
@@ -227,6 +227,102 @@ def test_runs_without_eval_are_reported_missing(report):
     assert "reward per timestep" in text.split("## Missing", 1)[1]
 
 
+def _verdict_ref(model, baseline, kind):
+    """The claims' verdict, computed here independently of mjx_morph.eval.stats (scipy's Welch CI)."""
+    if len(model) < 2 or len(baseline) < 2:
+        return "inconclusive (n < 2)", None
+    ci = stats.ttest_ind(model, baseline, equal_var=False).confidence_interval(0.95)
+    m = 0.05 * abs(np.mean(baseline))
+    delta = 0.0 if kind == "better" else -m
+    verdict = ("reproduced" if ci.low > delta else "not reproduced" if ci.high < delta + m else "inconclusive")
+    return verdict, ci
+
+
+def _seed_means(per_robot_of_seeds, tag):
+    return [np.mean(list(pr[tag].values())) for pr in per_robot_of_seeds]
+
+
+def test_claim_test_verdicts():
+    base = [100.0, 101.0, 99.0]
+    cases = [([110.0, 112.0, 111.0], "better", "reproduced"),            # a clear gain
+             ([80.0, 81.0, 79.0], "better", "not reproduced"),           # a clear loss
+             ([80.0, 81.0, 79.0], "level", "not reproduced"),
+             ([40.0, 160.0, 100.0], "better", "inconclusive"),           # wide overlap
+             ([40.0, 160.0, 100.0], "level", "inconclusive"),
+             ([98.0, 98.5, 97.5], "level", "reproduced"),                # a small loss, inside the 5% margin
+             ([98.0, 98.5, 97.5], "better", "not reproduced"),
+             ([102.0, 102.5, 101.5], "better", "not reproduced"),        # a sure gain, but below the margin
+             ([130.0], "better", "inconclusive (n < 2)")]
+    for model, kind, want in cases:
+        r = claim_test(model, base, kind)
+        ref, ci = _verdict_ref(model, base, kind)
+        assert r.verdict == want == ref, (model, kind)
+        assert r.difference == pytest.approx(np.mean(model) - 100.0)
+        assert r.relative == pytest.approx(r.difference)                 # the baseline's mean is 100
+        assert r.margin == pytest.approx(5.0)
+        assert (r.model_seeds, r.baseline_seeds) == (len(model), 3)
+        if ci is not None:
+            assert (r.ci_low, r.ci_high) == pytest.approx((ci.low, ci.high), rel=1e-9)
+        else:
+            assert np.isnan(r.ci_low) and np.isnan(r.ci_high)
+    with pytest.raises(ValueError, match="claim kind"):
+        claim_test(base, base, "worse")
+
+
+def _claim_rows(out: Path) -> dict:
+    return {(r["task"], r["model"], r["set"]): r for r in _csv(out / "claims.csv")}
+
+
+def test_claims_table(report):
+    """Each claim per task against numbers computed here; one seed a side: n < 2; no eval: missing, no row."""
+    d, rows = report["data"], _claim_rows(report["out"])
+    assert "### Claims" in report["text"]
+    for c in CLAIMS:
+        if c.model != "rmomo":
+            assert ("ft", c.model, c.set) not in rows and ("incline", c.model, c.set) not in rows
+            continue
+        a = _seed_means([d[("ft", "rmomo", s)] for s in (0, 1)], c.set)
+        b = _seed_means([d[("ft", "modumorph", s)] for s in (0, 1)], c.set)
+        r = rows[("ft", "rmomo", c.set)]
+        verdict, ci = _verdict_ref(a, b, c.kind)
+        assert (r["claim"], r["kind"], r["baseline"], r["verdict"]) == (c.text, c.kind, "modumorph", verdict)
+        assert (r["model_seeds"], r["baseline_seeds"]) == ("2", "2")
+        assert float(r["model_mean"]) == pytest.approx(np.mean(a)) and float(r["baseline_mean"]) == pytest.approx(
+            np.mean(b))
+        assert float(r["ci95_low"]) == pytest.approx(ci.low) and float(r["ci95_high"]) == pytest.approx(ci.high)
+        assert float(r["relative_difference_pct"]) == pytest.approx(100 * (np.mean(a) / np.mean(b) - 1))
+        assert f"| ft | {c.text} | {c.set} | 2/2 | {np.mean(a):.1f} | {np.mean(b):.1f} |" in report["text"]
+        if c.set == "variants":                                          # incline: not evaluated
+            assert ("incline", "rmomo", "variants") not in rows
+        else:
+            r = rows[("incline", "rmomo", c.set)]
+            assert r["verdict"] == "inconclusive (n < 2)" and r["ci95_low"] == ""
+            assert (r["model_seeds"], r["baseline_seeds"]) == ("1", "1")
+    missing = report["text"].split("## Missing", 1)[1]
+    untested = {line.split(":", 1)[0][2:]: line for line in missing.splitlines() if "claims untested" in line}
+    assert set(untested) == {"ft", "incline"}
+    assert "R-MeMo beats MetaMorph zero-shot on unseen topologies (test: rmemo 0, metamorph 0 seeds)" in untested["ft"]
+    assert "R-MoMo" not in untested["ft"] and "(variants: rmomo 0, modumorph 0 seeds)" in untested["incline"]
+
+
+def test_claims_verdicts_on_clear_runs(tmp_path):
+    """Runs built to settle every claim: R-MeMo well above MetaMorph (reproduced), R-MoMo well below ModuMorph (not
+    reproduced); the verdicts and numbers match those computed here."""
+    levels = {"rmemo": (1500, 1600), "metamorph": (1000, 1100), "rmomo": (500, 600), "modumorph": (1000, 1100)}
+    data = {a: [make_run(tmp_path / "runs", f"ft-{a}-s{s}", arch=a, seed=s, returns=lv, metrics=False)[1]
+                for s in range(3 if a in ("rmemo", "metamorph") else 2)] for a, lv in levels.items()}
+    build_report([tmp_path / "runs"], tmp_path / "out")
+    rows = _claim_rows(tmp_path / "out")
+    assert len(rows) == len(CLAIMS)
+    for c in CLAIMS:
+        a, b = _seed_means(data[c.model], c.set), _seed_means(data[c.baseline], c.set)
+        r = rows[("ft", c.model, c.set)]
+        assert r["verdict"] == _verdict_ref(a, b, c.kind)[0]
+        assert r["verdict"] == ("reproduced" if c.model == "rmemo" else "not reproduced")
+        assert float(r["difference"]) == pytest.approx(np.mean(a) - np.mean(b))
+        assert float(r["margin"]) == pytest.approx(0.05 * np.mean(b))
+
+
 def test_mean_curve_band():
     x = np.arange(0, 1000, 10.0)
     grid, m, lo, hi, n = mean_curve([(x, x), (x, x + 2)], points=50, smooth=False)
@@ -326,6 +422,9 @@ def test_variants_of_an_architecture_are_reported_apart(tmp_path):
         (d / "config.yaml").write_text(yaml.safe_dump(cfg))
     md = build_report([root], tmp_path / "out").read_text()
     assert "| ft | rmomo, scale_after_cell=null | 2 |" in md and "| ft | rmomo, scale_after_cell=true | 1 |" in md
+    # claims compare only the groups named by the architecture alone
+    assert "(A/B arms are not compared: rmomo, scale_after_cell=null; rmomo, scale_after_cell=true)" in md
+    assert not (tmp_path / "out" / "claims.csv").exists()
 
 
 def test_collect_keeps_the_small_artefacts_and_rebuilds_the_report(tmp_path):

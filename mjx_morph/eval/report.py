@@ -23,6 +23,16 @@ normalised returns use `normalised` (the paper's per-task range) and are pooled 
 pairs. Learning curves: each seed's episode return against env steps, lightly smoothed, interpolated onto a common
 grid; mean and 95% CI over the seeds covering each grid point (no band with one seed).
 
+Claims (`CLAIMS`, the paper's claims as data): per task, each model against its baseline on one eval set, on the
+main runs of the groups named exactly by the architecture (so not the arms of an A/B study, e.g. "rmomo,
+precision=bf16"). Seeds are the samples (`stats.claim_test`): each seed's mean return over the set's robots (the
+per-robot numbers of the returns table; with the same robots for every seed, the means over seeds are its means), the
+difference of the means over seeds with a 95% Welch CI, and a margin m of 5% of the baseline's mean
+(`stats.CLAIM_MARGIN`). "better" (a gain) is reproduced when the CI lies above 0 and not reproduced when it lies below
+m; "level" (at least as well, non-inferiority) is reproduced when the CI lies above -m and not reproduced when it lies
+below 0; otherwise inconclusive, "inconclusive (n < 2)" with one seed on a side; a claim that a side has no
+eval/<set>.json for is listed under "Missing".
+
 The report is the sections of `SECTIONS`, in order: each is a function (document, context) that adds figures
 (under its heading), tables and missing items to the `document.Document`; `build_report` reads the runs, makes the
 context and walks the list.
@@ -31,6 +41,7 @@ Outputs in `out/`: PNG figures, CSV tables and `report.md` (runs, figures with c
 """
 from __future__ import annotations
 
+import math
 import os
 from collections import defaultdict
 from dataclasses import dataclass, field
@@ -46,12 +57,35 @@ from . import plots
 from .document import Document, fmt, fmt_steps, pm, write_csv
 from .params import param_count
 from .runs import CONTEXT_GROUPS, Run, classify, find_run_dirs, name_variants, read_run
-from .stats import (TASK_RANGES, Stat, change_stats, ci95, mean_curve, normalised_or_nan, robot_difference,
-                    seed_average, set_stat, stat_of)
+from .stats import (CLAIM_MARGIN, TASK_RANGES, Stat, change_stats, ci95, claim_test, mean_curve, normalised_or_nan,
+                    robot_difference, seed_average, seed_set_means, set_stat, stat_of)
 
 SETS = ("train", "test", "val", "variants")
 TASK_ORDER = tuple(TASK_RANGES)
 DEFAULT_COMPARE = ("rmomo", "modumorph")
+
+
+@dataclass(frozen=True)
+class Claim:
+    """A claim of the paper: `model` against `baseline` on the eval set `set`; kind "better" (a gain) or "level" (at
+    least as well: non-inferiority within the margin), as `stats.claim_test` reads them."""
+    model: str
+    baseline: str
+    set: str
+    kind: str
+    text: str
+
+
+CLAIMS: tuple[Claim, ...] = (
+    Claim("rmomo", "modumorph", "train", "level", "R-MoMo trains at least as well as ModuMorph"),
+    Claim("rmemo", "metamorph", "train", "level", "R-MeMo trains at least as well as MetaMorph"),
+    Claim("rmomo", "modumorph", "test", "better", "R-MoMo beats ModuMorph zero-shot on unseen topologies"),
+    Claim("rmemo", "metamorph", "test", "better", "R-MeMo beats MetaMorph zero-shot on unseen topologies"),
+    Claim("rmomo", "modumorph", "variants", "better", "R-MoMo beats ModuMorph zero-shot on dynamics/kinematics "
+                                                      "variants"),
+    Claim("rmemo", "metamorph", "variants", "better", "R-MeMo beats MetaMorph zero-shot on dynamics/kinematics "
+                                                      "variants"),
+)
 
 
 @dataclass
@@ -320,6 +354,50 @@ def _robot_differences(doc: Document, ctx: ReportContext) -> None:
                    for t, a, b, n, m, ci, k, f in summary])
 
 
+def _interval(d: float, lo: float, hi: float) -> str:
+    """"+d [+lo, +hi]" with one decimal ("+d" without a CI)."""
+    if not math.isfinite(d):
+        return "–"
+    return f"{d:+.1f} [{lo:+.1f}, {hi:+.1f}]" if math.isfinite(lo) else f"{d:+.1f}"
+
+
+def _claims(doc: Document, ctx: ReportContext) -> None:
+    """The CLAIMS table: each claim per task with both sides' main runs evaluated on its set; the rest missing."""
+    rows, md = [], []
+    claim_archs = {a for c in CLAIMS for a in (c.model, c.baseline)}
+    for t in ctx.tasks:
+        main, untested = ctx.main[t], []
+        for c in CLAIMS:
+            a, b = seed_set_means(main.get(c.model, []), c.set), seed_set_means(main.get(c.baseline, []), c.set)
+            if not a or not b:
+                untested.append(f"{c.text} ({c.set}: {c.model} {len(a)}, {c.baseline} {len(b)} seeds)")
+                continue
+            r = claim_test(a, b, c.kind)
+            rows.append([t, c.model, c.baseline, c.text, c.kind, c.set, r.model_seeds, r.baseline_seeds, r.model_mean,
+                         r.baseline_mean, r.difference, r.ci_low, r.ci_high, r.margin, r.relative, r.verdict])
+            md.append([t, c.text, c.set, f"{r.model_seeds}/{r.baseline_seeds}", fmt(r.model_mean),
+                       fmt(r.baseline_mean), _interval(r.difference, r.ci_low, r.ci_high),
+                       f"{r.relative:+.1f}%" if math.isfinite(r.relative) else "–", r.verdict])
+        if untested:
+            arms = [a for a in main if a.split(",", 1)[0] in claim_archs and a not in claim_archs]
+            doc.missing.append(f"{t}: claims untested — each needs eval/<set>.json of main runs of both "
+                               f"architectures: {'; '.join(untested)}"
+                               + (f" (A/B arms are not compared: {'; '.join(arms)})" if arms else ""))
+    if rows:
+        m = f"{100 * CLAIM_MARGIN:g}%"
+        doc.table("Claims", "claims",
+                  ["task", "model", "baseline", "claim", "kind", "set", "model_seeds", "baseline_seeds", "model_mean",
+                   "baseline_mean", "difference", "ci95_low", "ci95_high", "margin", "relative_difference_pct",
+                   "verdict"], rows,
+                  ["task", "claim", "set", "seeds (model/baseline)", "model mean", "baseline mean",
+                   "difference [95% CI]", "relative difference", "verdict"], md,
+                  note="per seed, the set's mean return over robots; difference of the means over seeds, model − "
+                       f"baseline, 95% CI from Welch's t; margin m = {m} of the baseline's mean. 'beats': "
+                       "reproduced if the CI lies above 0, not reproduced if below m; 'at least as well': "
+                       "reproduced if above −m, not reproduced if below 0; otherwise inconclusive. Main runs of the "
+                       "groups named by the architecture alone (A/B arms are not compared).")
+
+
 def _mean_trace(traces: list[list]) -> np.ndarray | None:
     traces = [np.asarray(x, float) for x in traces if x]
     if not traces:
@@ -495,6 +573,7 @@ SECTIONS: tuple[tuple[str, Callable[[Document, ReportContext], None]], ...] = (
     ("Learning curves", _learning_curves),
     ("Returns", _returns),
     ("Per-robot differences", _robot_differences),
+    ("Claims", _claims),
     ("Reward per timestep", _reward_per_step),
     ("Training-set size", _train_size),
     ("Single context feature", _context_features),

@@ -4,14 +4,20 @@
     normalised(returns, "ft")        # the paper's per-task range: (R - min) / (max - min)
     set_stat(runs, "test", "ft")     # Stat: mean and CI over robots of the seed-averaged per-robot returns
     grid, mean, lo, hi, n = mean_curve([(steps, returns), ...])
+    claim_test(seed_set_means(model_runs, "test"), seed_set_means(baseline_runs, "test"), "better")
 
 Per-robot mean returns (the `per_robot` of eval/<tag>.json) are averaged over the seeds (runs) of a group that
 evaluated the robot (`seed_average`); means and 95% CIs are then taken over robots. Normalised returns use the
 per-task ranges of `TASK_RANGES` (nan for a task without one). Learning curves are lightly smoothed, interpolated
 onto a common grid and averaged over the curves covering each grid point.
+
+Claims (`claim_test`) take seeds as the samples: each seed's mean return over the set's robots (`seed_set_means`),
+the difference of the means over seeds model - baseline with a 95% CI from Welch's t, and a verdict against a margin
+of `CLAIM_MARGIN` of the baseline's mean.
 """
 from __future__ import annotations
 
+import math
 from collections import defaultdict
 from dataclasses import dataclass
 from typing import Sequence
@@ -26,6 +32,12 @@ from .runs import Run
 #: the paper's per-task return range over robots, (min, max): the task records' `return_range`
 TASK_RANGES = {name: task.return_range for name, task in TASKS.items()}
 CURVE_POINTS = 200
+#: the margin m of `claim_test`, a fraction of the baseline's mean return: the smallest difference that counts. A gain
+#: below m is no gain ("better" not reproduced); a loss below m is "at least as well" (non-inferiority, "level")
+CLAIM_MARGIN = 0.05
+#: the verdicts of `claim_test`
+REPRODUCED, NOT_REPRODUCED, INCONCLUSIVE, TOO_FEW_SEEDS = ("reproduced", "not reproduced", "inconclusive",
+                                                          "inconclusive (n < 2)")
 
 
 def normalised(ret, task: str):
@@ -130,6 +142,83 @@ def robot_difference(runs_a: Sequence[Run], runs_b: Sequence[Run], tag: str = "t
                 va, vb = float(normalised_or_nan(va, task)), float(normalised_or_nan(vb, task))
             rows.append((k, va, vb, va - vb))
     return sorted(rows, key=lambda r: (-r[3], r[0]))
+
+
+def seed_set_means(runs: Sequence[Run], tag: str) -> list[float]:
+    """Each run's (seed's) mean return over the robots of `tag`, from its per-robot numbers (those `seed_average`
+    reads; without any, the file's mean_return), for the runs that evaluated `tag`."""
+    out = []
+    for r in runs:
+        if tag not in r.evals:
+            continue
+        pr = r.per_robot(tag)
+        try:
+            v = float(np.mean(list(pr.values()))) if pr else float(r.evals[tag].get("mean_return"))
+        except (TypeError, ValueError):
+            continue
+        if math.isfinite(v):
+            out.append(v)
+    return out
+
+
+def welch_ci95(a: Sequence[float], b: Sequence[float]) -> tuple[float, float]:
+    """95% CI (low, high) of mean(a) - mean(b) from Welch's t (unequal variances, Welch-Satterthwaite degrees of
+    freedom); (nan, nan) with fewer than 2 values on a side, the difference itself when both sides have no spread."""
+    a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
+    if a.size < 2 or b.size < 2:
+        return float("nan"), float("nan")
+    d = float(a.mean() - b.mean())
+    va, vb = a.var(ddof=1) / a.size, b.var(ddof=1) / b.size
+    if va + vb == 0:
+        return d, d
+    df = (va + vb) ** 2 / (va ** 2 / (a.size - 1) + vb ** 2 / (b.size - 1))
+    half = float(stats.t.ppf(0.975, df) * np.sqrt(va + vb))
+    return d - half, d + half
+
+
+@dataclass(frozen=True)
+class ClaimTest:
+    """What `claim_test` found: seeds per side, means over seeds, the difference model - baseline with its 95% CI
+    (nan with fewer than 2 seeds on a side), the margin m (in return) and the verdict."""
+    model_seeds: int
+    baseline_seeds: int
+    model_mean: float
+    baseline_mean: float
+    difference: float
+    ci_low: float
+    ci_high: float
+    margin: float
+    verdict: str
+
+    @property
+    def relative(self) -> float:
+        """The difference in percent of the baseline's mean."""
+        return 100 * self.difference / abs(self.baseline_mean) if self.baseline_mean else float("nan")
+
+
+def claim_test(model: Sequence[float], baseline: Sequence[float], kind: str,
+               margin: float = CLAIM_MARGIN) -> ClaimTest:
+    """Whether the seeds' returns `model` support a claim against `baseline` (one number per seed, e.g.
+    `seed_set_means`). kind "better": the model is better (delta = 0); "level": it does at least as well (delta = -m),
+    with m = margin x |mean(baseline)|. With the 95% Welch CI [lo, hi] of mean(model) - mean(baseline): reproduced if
+    lo > delta, else not reproduced if hi < delta + m (a gain surely below m; a loss surely there), else inconclusive;
+    "inconclusive (n < 2)" with fewer than 2 seeds on a side."""
+    if kind not in ("better", "level"):
+        raise ValueError(f"claim kind {kind!r}: not 'better' or 'level'")
+    a, b = np.asarray(model, np.float64), np.asarray(baseline, np.float64)
+    ma, mb = (float(x.mean()) if x.size else float("nan") for x in (a, b))
+    m = margin * abs(mb)
+    lo, hi = welch_ci95(a, b)
+    delta = 0.0 if kind == "better" else -m
+    if a.size < 2 or b.size < 2:
+        verdict = TOO_FEW_SEEDS
+    elif lo > delta:
+        verdict = REPRODUCED
+    elif hi < delta + m:
+        verdict = NOT_REPRODUCED
+    else:
+        verdict = INCONCLUSIVE
+    return ClaimTest(int(a.size), int(b.size), ma, mb, ma - mb, lo, hi, m, verdict)
 
 
 def _smooth(y: np.ndarray, k: int) -> np.ndarray:
