@@ -25,12 +25,7 @@ grid; mean and 95% CI over the seeds covering each grid point (no band with one 
 
 Claims (`CLAIMS`, the paper's claims as data): per task, each model against its baseline on one eval set, on the
 main runs of the groups named exactly by the architecture (so not the arms of an A/B study, e.g. "rmomo,
-precision=bf16"). Seeds are the samples (`stats.claim_test`): each seed's mean return over the set's robots (the
-per-robot numbers of the returns table; with the same robots for every seed, the means over seeds are its means), the
-difference of the means over seeds with a 95% Welch CI, and a margin m of 5% of the baseline's mean
-(`stats.CLAIM_MARGIN`). "better" (a gain) is reproduced when the CI lies above 0 and not reproduced when it lies below
-m; "level" (at least as well, non-inferiority) is reproduced when the CI lies above -m and not reproduced when it lies
-below 0; otherwise inconclusive, "inconclusive (n < 2)" with one seed on a side; a claim that a side has no
+precision=bf16"), with seeds as the samples and the verdict rule of `stats.claim_test`; a claim that a side has no
 eval/<set>.json for is listed under "Missing".
 
 The report is the sections of `SECTIONS`, in order: each is a function (document, context) that adds figures
