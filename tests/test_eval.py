@@ -127,12 +127,18 @@ def test_another_run_of_the_same_model_reuses_the_compiled_sweep(evaluated_runs,
     d = tmp_path / "run"
     shutil.copytree(evaluated_runs[1], d)
     shutil.rmtree(d / "eval")
+    cfg = d / "config.yaml"                     # another training seed (the parameters stay the copied run's)
+    assert "\nseed: 0\n" in cfg.read_text()
+    cfg.write_text(cfg.read_text().replace("\nseed: 0\n", "\nseed: 7\n"))
     log = []
     out = evaluate_run(d, ["train"], episodes=2, seed=0, zero_state_steps=10, episode_length=EVAL_STEPS,
                        trace_steps=EVAL_STEPS, log=log.append)
     assert not any("building the env" in ln or "compilation" in ln for ln in log), log
     first = json.loads((evaluated_runs[1] / "eval" / "train.json").read_text())
     assert out["train"]["per_robot"] == first["per_robot"]
+    # the summary names both seeds: the run's training seed and the evaluation episodes' seed
+    saved = json.loads((d / "eval" / "train.json").read_text())
+    assert (saved["train_seed"], saved["eval_seed"]) == (7, 0) and (first["train_seed"], first["eval_seed"]) == (0, 0)
 
 
 def test_set_names_labels_and_keys_by_robot_name(loaded):

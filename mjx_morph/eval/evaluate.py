@@ -5,7 +5,8 @@
 writes, per set, `<run_dir>/eval/<tag>.csv` (one row per episode) and `<run_dir>/eval/<tag>.json` (summary: mean
 return and normalised return with 95% confidence intervals over robots, per-robot means, per change type for
 variants, fall/timeout/instability counts, the reward per timestep of the first steps, and the same with the
-recurrent state held at zero for the first `zero_state_steps` steps for recurrent models).
+recurrent state held at zero for the first `zero_state_steps` steps for recurrent models). `train_seed` is the run's training seed, `eval_seed` the seed of the evaluation episodes' start
+states (files written before session 10 have only `seed`, which was the evaluation seed).
 
 Set names: `train` (the robots the run trained on, `num_robots` included), `test` and `val` (the held-out robots
 of the run's robot family: `unimal100/test70` / `unimal100/val` for the original robots, `gen/test` for the
@@ -182,7 +183,8 @@ def evaluate_run(run_dir: str | Path, sets: Iterable[str | EvalSet] = ("train", 
         res, robot_of, episode_of = _concat(results), np.concatenate(robot_of), np.concatenate(episode_of)
         per_robot = _per_robot(res, robot_of, names)
         summary = {"run_dir": str(run_dir), "arch": model.arch, "task": task, "set": es.name, "tag": es.tag,
-                   "checkpoint": step, "env_steps": env_steps, "episodes": episodes, "seed": seed,
+                   "checkpoint": step, "env_steps": env_steps, "episodes": episodes,
+                   "train_seed": cfg.seed, "eval_seed": seed,
                    "episode_length": sweeper.env.config.episode_length, **_summary(res, per_robot, task),
                    **({"per_change": per_change} if per_change else {}), "per_robot": per_robot}
         summary["reward_trace"] = res.reward.mean(axis=1).tolist()
