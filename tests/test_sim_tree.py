@@ -103,7 +103,7 @@ def test_padded_robot_matches_robot_alone_in_mujoco_c():
             for _ in range(4):
                 mujoco.mj_step(ma, da)
                 mujoco.mj_step(mp, dp)
-        assert np.abs(dp.xpos[bodies] - da.xpos[1:]).max() < 1e-4
+        assert np.abs(dp.xpos[bodies] - da.xpos[1:]).max() < 1e-5        # issue 12's bound on the padding's error
         pad = np.ones(mp.nq, bool)
         pad[:7] = False
         pad[order] = False
