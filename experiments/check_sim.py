@@ -55,6 +55,7 @@ class CheckSimConfig:
     num_robots: int = 0                      # > 0: only the set's first num_robots robots
     hfield_contacts: str = _ENV.hfield_contacts   # csr / obstacle: the env's height-field rule (mujoco | mjx)
     hfield_contacts_per_geom: int = _ENV.hfield_contacts_per_geom
+    hfield_candidates: int = _ENV.hfield_candidates     # prisms per group tested exactly (0: all)
     contact_budget: int = _ENV.contact_budget     # csr / obstacle: the env's cap on contacts per env (0: none)
 
 
@@ -119,10 +120,13 @@ def check_hfield(a: CheckSimConfig, rs) -> None:
     res = fidelity.compare_hfield(rs.robots, a.task, opts, steps=a.steps, seed=a.seed,
                                   hfield_contacts=a.hfield_contacts,
                                   hfield_contacts_per_geom=a.hfield_contacts_per_geom,
+                                  hfield_candidates=a.hfield_candidates,
                                   contact_budget=a.contact_budget)
+    rule_detail = (f" ({a.hfield_contacts_per_geom} per geom, {a.hfield_candidates or 'all'} candidate prisms per "
+                   "group)" if a.hfield_contacts == "mujoco" else "")
     print(f"# {rs.name} on {a.task}: {len(res)} robots, solver iterations {a.iterations}, line search "
           f"{a.ls_iterations}, {a.steps} control steps, height-field contacts {a.hfield_contacts}"
-          f"{f' ({a.hfield_contacts_per_geom} per geom)' if a.hfield_contacts == 'mujoco' else ''}, "
+          f"{rule_detail}, "
           f"contact budget {a.contact_budget or 'none'} "
           f"({time.time() - t0:.0f} s); mjx = padded MJX vs padded MuJoCo C (float64), max body-position error (m); "
           "first step over 1e-5 m")

@@ -38,7 +38,8 @@ float32 with float32 matmuls (`matmul_precision="highest"`: JAX's default would 
 recent NVIDIA GPUs; MetaMorph float64); the ft / incline floor is a plane whose capsule contacts are those
 MuJoCo C makes against MetaMorph's box floor (`floor_contacts="box"`, `contact.py`); csr / obstacle height-field
 contacts are MuJoCo C's (`hfield_contacts="mujoco"`, `hfield_contact.py`: one per penetrated prism, at most
-`hfield_contacts_per_geom` = 32 per geom) and MJX keeps at most `contact_budget` = 64 contacts per env on those
+`hfield_contacts_per_geom` = 32 per geom, tested exactly only on the `hfield_candidates` = 96 prisms per group of
+pairs that a cheap bound says can touch) and MJX keeps at most `contact_budget` = 64 contacts per env on those
 tasks, the deepest (MuJoCo C has no such cap; none of 100 train robots x 3 s of random actions made more than 44).
 Contacts otherwise as
 MetaMorph: condim 3, friction 0.7, pyramidal cone, Newton solver, Euler
@@ -89,6 +90,9 @@ class EnvConfig:
                                     # hfield_contact.py
     hfield_contacts_per_geom: int = hfield_contact.DEFAULT_PER_GEOM   # "mujoco": contact slots per (height
                                     # field, geom) pair, 32 (the deepest are kept beyond; MuJoCo C keeps up to 50)
+    hfield_candidates: int = 96     # "mujoco": prisms per group of (height field, geom) pairs tested exactly, those
+                                    # of lowest bound (hfield_contact.hfield_group; the train set's groups had at
+                                    # most 72 that can touch); 0: every prism of every geom's window
     contact_budget: int = 64        # csr / obstacle: MJX keeps at most this many contacts per env, the deepest
                                     # (MuJoCo C: no such cap); 0: every contact slot (padding.SolverOptions)
     context_features: Optional[List[str]] = None   # None: all context features; else only these groups of
@@ -159,7 +163,8 @@ class UnimalEnv:
         self.config = config
         self.task: Task = get_task(config.task)
         contact.check_rule(config.floor_contacts)
-        hfield_contact.check_rule(config.hfield_contacts, config.hfield_contacts_per_geom)
+        hfield_contact.check_rule(config.hfield_contacts, config.hfield_contacts_per_geom,
+                                  config.hfield_candidates)
         if config.matmul_precision not in ("highest", "default"):
             raise ValueError(f"env.matmul_precision={config.matmul_precision!r}: expected highest or default")
         self.morphologies = tuple(robots)
@@ -193,7 +198,7 @@ class UnimalEnv:
         (contact.py) and height-field rule (hfield_contact.py; it also sets the size of MJX's contact arrays)."""
         c = self.config
         with jax.default_matmul_precision(c.matmul_precision), contact.floor(c.floor_contacts), \
-                hfield_contact.rule(c.hfield_contacts, c.hfield_contacts_per_geom):
+                hfield_contact.rule(c.hfield_contacts, c.hfield_contacts_per_geom, c.hfield_candidates):
             yield
 
     def _row(self, tree, robot):
