@@ -13,7 +13,9 @@
    and under `vmap` over envs that is one batched gather per control step (the cheapest of the variants measured,
    see docs/benchmarks.md);
 5. gives inert geoms a margin of -1e4 m: MJX activates a contact when `dist < margin`, so inert geoms never touch
-   anything (in any pose, with self-collision on too) while the static contact structure stays shared.
+   anything (in any pose, with self-collision on too) while the static contact structure stays shared; and gives
+   robot-robot contacts a margin of -SELF_CONTACT_GAP (robot geoms -gap/2, world geoms +gap/2, so robot-world
+   contacts keep MuJoCo's 0), see SELF_CONTACT_GAP.
 With self-collision on (and `SolverOptions.self_collision_cut`, unless the caller gave `self_pairs`), step 2 first
 finds the slot pairs that some robot of the set can make touch (`selfcontact.py`, cached per robot) and the padded
 models exclude all other pairs; `StackedModel.self_contact` summarises the pairs MJX checks.
@@ -40,6 +42,14 @@ from .padding import SolverOptions, WorldSpec
 from .supertree import SharedTree, build_shared_tree
 
 INERT_MARGIN = -1.0e4
+# Sibling limbs grow from one parent 2 radii apart, so many limb pairs touch exactly in the rest pose (118 of the
+# train robots' 2952 pairs). MuJoCo C (float64) decides such a contact on a distance of ~1e-9 m, below float32's
+# resolution of these positions (~1.5e-8 m): unmarked, MJX switched gen-1-8's sibling contact on where MuJoCo C had
+# it off (+1.0e-9 m), a 30 m/s^2 jolt at the first substep that grew to 0.10 m in 0.5 s. A robot-robot contact
+# therefore counts in MJX only from 1e-7 m of penetration (its rest point moves 1e-7 m deeper). Measured on
+# gen/test (docs/benchmarks.md): gap 0: 1 robot over 1e-3 m, max 0.10 m; 1e-7: none, max 4.3e-5 m; 1e-6: none,
+# max 5.8e-4 m (a larger gap disagrees with MuJoCo C on real shallow contacts).
+SELF_CONTACT_GAP = 1.0e-7
 
 # ModuMorph's fixed context bounds (metamorph/envs/modules/agent.py), in the order of the 35 static features
 _LIMB_BOUNDS = [
@@ -195,10 +205,13 @@ def build_stacked_model(robots: Sequence[Morphology], world: WorldSpec = WorldSp
     mxs = [mx.replace(_impl=mx._impl.replace(geom_rbound_hfield=rb)) for mx in mxs]
     # inert geoms: never active (margin only decides activation in MJX; collision functions ignore it), and never
     # among the closest pairs of the broad phase (MJX reads geom_rbound only there)
+    # robot-robot contacts from SELF_CONTACT_GAP of penetration on; robot-world contacts as MuJoCo's
     for r, mx in enumerate(mxs):
         inert = inert_geoms(tree, r, mjm[r])
         margin = np.asarray(mx.geom_margin).copy()
         rbound = np.asarray(mx.geom_rbound).copy()
+        in_world = np.asarray(mjm[r].geom_bodyid) == 0
+        margin += np.where(in_world, 0.5, -0.5) * SELF_CONTACT_GAP
         margin[inert] = INERT_MARGIN
         rbound[inert] = INERT_MARGIN
         mxs[r] = mx.replace(geom_margin=margin, geom_rbound=rbound)
