@@ -90,9 +90,10 @@ class EnvConfig:
                                     # hfield_contact.py
     hfield_contacts_per_geom: int = hfield_contact.DEFAULT_PER_GEOM   # "mujoco": contact slots per (height
                                     # field, geom) pair, 32 (the deepest are kept beyond; MuJoCo C keeps up to 50)
-    hfield_candidates: int = 96     # "mujoco": prisms per group of (height field, geom) pairs tested exactly, those
-                                    # of lowest bound (hfield_contact.hfield_group; the train set's groups had at
-                                    # most 72 that can touch); 0: every prism of every geom's window
+    hfield_candidates: int = hfield_contact.DEFAULT_CANDIDATES   # "mujoco": prisms per group of (height
+                                    # field, geom) pairs tested exactly, 96, those of lowest bound
+                                    # (hfield_contact.hfield_group; the train set's groups had at most 72 that can
+                                    # touch); 0: every prism of every geom's window
     contact_budget: int = 64        # csr / obstacle: MJX keeps at most this many contacts per env, the deepest
                                     # (MuJoCo C: no such cap); 0: every contact slot (padding.SolverOptions)
     context_features: Optional[List[str]] = None   # None: all context features; else only these groups of

@@ -311,6 +311,12 @@ def hfield_geom(h, pos, mat, radius, half, subgrid: Tuple[int, int], ncon: int):
     return dist, wpos, frame
 
 
+def _windows(h, pos, mat, radius, half, subgrid: Tuple[int, int]):
+    """`_window` for P geoms, each with its own height field pose (`h.pos` (P, 3), `h.mat` (P, 3, 3))."""
+    return jax.vmap(lambda hp, hm, *g: _window(h.replace(pos=hp, mat=hm), *g, subgrid))(
+        h.pos, h.mat, pos, mat, radius, half)
+
+
 def hfield_group(h, pos, mat, radius, half, subgrid: Tuple[int, int], ncon: int, candidates: int):
     """The same contacts for P geoms at once (pos (P, 3), mat (P, 3, 3), radius (P,), half (P,); `h.pos` (P, 3),
     `h.mat` (P, 3, 3): the height field geom of each pair), testing exactly only the `candidates` prisms of the
@@ -323,8 +329,7 @@ def hfield_group(h, pos, mat, radius, half, subgrid: Tuple[int, int], ncon: int,
 
     Returns (dist (P ncon,), pos (P ncon, 3), frame (P ncon, 3, 3)), pair after pair, as MJX's collider table
     expects."""
-    tops, valid, a, b, bound = jax.vmap(
-        lambda hp, hm, *g: _window(h.replace(pos=hp, mat=hm), *g, subgrid))(h.pos, h.mat, pos, mat, radius, half)
+    tops, valid, a, b, bound = _windows(h, pos, mat, radius, half, subgrid)
     num_pairs, q_per = valid.shape
     k = min(int(candidates), num_pairs * q_per)
     cand = (valid & (bound < BOUND_SLACK)).reshape(-1)
@@ -354,15 +359,14 @@ def hfield_group(h, pos, mat, radius, half, subgrid: Tuple[int, int], ncon: int,
 def candidate_counts(h, pos, mat, radius, half, subgrid: Tuple[int, int]):
     """How many prisms of each geom pass the bound (the prisms `hfield_group` tests exactly), (P,): to size
     `candidates` (experiments, tests)."""
-    _, valid, _, _, bound = jax.vmap(
-        lambda hp, hm, *g: _window(h.replace(pos=hp, mat=hm), *g, subgrid))(h.pos, h.mat, pos, mat, radius, half)
+    _, valid, _, _, bound = _windows(h, pos, mat, radius, half, subgrid)
     return jnp.sum(valid & (bound < BOUND_SLACK), axis=1)
 
 
 # ---- installation into MJX's collision table -------------------------------------------------------------------
 RULES = ("mujoco", "mjx")
 DEFAULT_PER_GEOM = 32       # contacts per (height field, geom) pair under the "mujoco" rule (MuJoCo C: up to 50)
-DEFAULT_CANDIDATES = 0      # prisms per group of pairs tested exactly (`hfield_group`); 0: every prism
+DEFAULT_CANDIDATES = 96     # prisms per group of pairs tested exactly (`hfield_group`); 0: every prism
 _MJX = {GeomType.SPHERE: collision_convex.hfield_sphere, GeomType.CAPSULE: collision_convex.hfield_capsule}
 _RULE = contextvars.ContextVar("mjx_morph_hfield_contacts", default=("mujoco", DEFAULT_PER_GEOM, DEFAULT_CANDIDATES))
 
