@@ -9,7 +9,8 @@ Output: one line per architecture, `<arch> <trainable parameters>`, optionally f
 parentheses. With all_envs=true each task's block starts with a `# env=<name> ...` line. The count comes
 from the Flax parameters that `Model.init` creates (traced with jax.eval_shape, so no compute), built as a
 training run builds it (`mjx_morph.run.make_model_for`: the architecture's defaults, the task's height map and
-decoder layers).
+decoder layers), with the spec's reading of every flag; where a run's measured defaults (`nets.zoo.RECOMMENDED`,
+e.g. R-MeMo's context MLP) change the count, a note gives the count a run has.
 
 Reference numbers: the paper's table (ft; incline has identical networks) and the csr / obstacle counts of the
 original MetaMorph / ModuMorph code. Where ours differ, it is because the original ModuMorph code also
@@ -24,6 +25,7 @@ from typing import List, Optional
 
 from mjx_morph.nets import ARCHS, Model
 from mjx_morph.run import RunConfig, make_model_for, register
+from mjx_morph.run.config import with_recommended
 from mjx_morph.sim.env import EnvConfig
 from mjx_morph.sim.tasks import TASKS
 
@@ -85,6 +87,12 @@ def count_line(arch: str, task: str) -> tuple[str, bool]:
         else:
             line += f"  ({where}: {want}; MISMATCH by {n - want:+d})"
             ok = False
+    run = with_recommended(RunConfig(env=EnvConfig(task=task), arch=arch))
+    n_run = make_model_for(run).num_params()
+    if n_run != n:
+        changed = ", ".join(f"{k}={v}" for k, v in sorted(dataclasses.asdict(run.model).items())
+                            if v is not None and getattr(RunConfig().model, k) is None)
+        line += f"  (a run, with the measured default {changed}: {n_run}, {n_run - n:+d})"
     return line, ok
 
 
