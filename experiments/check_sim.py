@@ -4,12 +4,14 @@
     python -m experiments.check_sim unimal100/test mujoco_defaults=true   # MuJoCo's defaults (100 / 50) too
     python -m experiments.check_sim gen/train iterations=100 ls_iterations=50 steps=25
     python -m experiments.check_sim unimal100/train mutated=1000    # 1000 mutants of the train robots, one tree
+    python -m experiments.check_sim unimal100/train unpadded_mjx=true   # + each robot alone in MJX (~10 s each)
     python -m experiments.check_sim unimal100/train task=csr        # height-field tasks: MJX vs MuJoCo C, same patches
     python -m experiments.check_sim unimal100/train task=csr num_robots=5 hfield_contacts=mjx   # MJX's own collider
 
 Prints per robot the worst body-position error (m) over `steps` control steps of the padded MJX robot against the
 robot alone in MuJoCo C on MetaMorph's floor, split into the padding's share (padded vs alone, both MuJoCo C) and
-MJX's (padded MJX vs padded MuJoCo C), then median / 99th percentile / max of each (see mjx_morph/sim/fidelity.py),
+MJX's (padded MJX vs padded MuJoCo C), with `unpadded_mjx=true` also the padding's share in float32 MJX (padded MJX
+vs the robot alone in MJX), then median / 99th percentile / max of each (see mjx_morph/sim/fidelity.py),
 and exits 1 when any robot is over the tolerance (1e-3 m by default).
 """
 from __future__ import annotations
@@ -57,6 +59,8 @@ class CheckSimConfig:
     hfield_contacts_per_geom: int = _ENV.hfield_contacts_per_geom
     hfield_candidates: int = _ENV.hfield_candidates     # prisms per group tested exactly (0: all)
     contact_budget: int = _ENV.contact_budget     # csr / obstacle: the env's cap on contacts per env (0: none)
+    unpadded_mjx: bool = False               # also run each robot alone in MJX: the padding's share in float32
+                                             # (one compilation per robot, ~10 s each on a CPU)
 
 
 register("check_sim_schema", CheckSimConfig)
@@ -88,19 +92,23 @@ def check(a: CheckSimConfig) -> None:
         print(f"# comparing {len(rs)} robots with MuJoCo C (solver iterations {it}, line search {ls}; compiling "
               "the stacked model takes a while)...", flush=True)
         res = fidelity.compare(rs.robots, opts, steps=a.steps, seed=a.seed, tree=tree,
-                                  floor_contacts=a.floor_contacts, matmul_precision=a.matmul_precision)
+                               floor_contacts=a.floor_contacts, matmul_precision=a.matmul_precision,
+                               unpadded_mjx=a.unpadded_mjx)
         print(f"# {rs.name}: {len(res)} robots, solver iterations {it}, line search {ls}, "
               f"self-collision {'on' if a.self_collision else 'off'}, floor {a.floor_contacts}, {a.steps} control steps, "
               f"matmul precision {a.matmul_precision} on {jax.devices()[0].platform} "
               f"({time.time() - t0:.0f} s)")
-        print(f"{'robot':40s} {'error':>9s} {'padding':>9s} {'mjx':>9s} {'sensitiv.':>9s}   (m; error = padded MJX vs "
+        fields = ["error", "padding", "mjx", "sensitivity"] + (["padding_mjx", "mjx_alone"] if a.unpadded_mjx else [])
+        print(" ".join([f"{'robot':40s}"] + [f"{f[:9]:>9s}" for f in fields]) + "   (m; error = padded MJX vs "
               "alone in MuJoCo C, padding = padded vs alone both in MuJoCo C, mjx = padded MJX vs padded MuJoCo C, "
-              f"sensitivity = alone vs alone started {fidelity.PERTURBATION:g} away)")
+              f"sensitivity = alone vs alone started {fidelity.PERTURBATION:g} away"
+              + (", padding_mjx = padded MJX vs alone in MJX, both float32, mjx_alone = alone in MJX vs alone in MuJoCo C)"
+                 if a.unpadded_mjx else ")"))
         for r in res:
             flag = "" if r.error <= a.tolerance else (
                 "   OVER TOLERANCE (as sensitive on its own)" if r.sensitivity >= 0.1 * r.error else "   OVER TOLERANCE")
-            print(f"{r.name:40s} {r.error:9.2e} {r.padding:9.2e} {r.mjx:9.2e} {r.sensitivity:9.2e}{flag}")
-        for field in ("error", "padding", "mjx", "sensitivity"):
+            print(" ".join([f"{r.name:40s}"] + [f"{getattr(r, f):9.2e}" for f in fields]) + flag)
+        for field in fields:
             s = fidelity.summary([getattr(r, field) for r in res])
             print(f"# {field:8s} median {s['median']:.2e}  p99 {s['p99']:.2e}  max {s['max']:.2e} m")
         worst = max(res, key=lambda r: r.error)

@@ -9,10 +9,15 @@ self-collision on/off, parent-child filtering):
 - `padded C`: the robot padded onto the set's shared tree (locked joints, inert slots, the set's self-collision
             pair cut) in MuJoCo C (float64), on the same box;
 - `padded MJX`: the same padded robot in the stacked MJX model (float32, all robots vmapped at once) on the env's
-            ft floor, a plane with MuJoCo C's box-face contacts (`contact.py`).
+            ft floor, a plane with MuJoCo C's box-face contacts (`contact.py`);
+- `alone MJX` (optional, `unpadded_mjx=True`): the robot's own MJCF in MJX (float32) on that floor, with the same
+            contact rule and self-contact gap: one compilation per robot (~10 s on a CPU), hence off by default.
 For each robot the largest world-position error of any body over the steps is reported three ways: `error` =
 padded MJX against alone (everything we change), `padding` = padded C against alone (the padding and the pair cut
-alone, same float64 engine), `mjx` = padded MJX against padded C (MJX and float32 alone, same model). These robots
+alone, same float64 engine), `mjx` = padded MJX against padded C (MJX and float32 alone, same model), and optionally
+`padding_mjx` = padded MJX against alone MJX (the padding in float32, where the two programs' different rounding is
+part of the difference; in float64 C that rounding is ~1e-16 and `padding` sees the padding alone) and `mjx_alone` =
+alone MJX against alone C (MJX and float32 without the padding). These robots
 are chaotic under tiny changes (a tiny difference at a contact onset grows into a different trajectory), so the
 horizon is short (25 control steps = 0.5 s), and `sensitivity` measures each robot's own chaos: the robot alone
 against itself started 1e-7 away. MuJoCo C's box-face rule switches one end's contact off when the other end's
@@ -33,7 +38,7 @@ from mujoco import mjx
 from ..unimal.mjcf import to_mjcf
 from ..unimal.morphology import MAX_NODES, Morphology
 from . import contact
-from .model import INERT_MARGIN, build_stacked_model, compile_padded, inert_geoms
+from .model import INERT_MARGIN, SELF_CONTACT_GAP, build_stacked_model, compile_padded, inert_geoms
 from .padding import SolverOptions, WorldSpec
 from .supertree import SharedTree
 from .terrain import Plane
@@ -71,6 +76,8 @@ class Result:
     mjx: float             # padded MJX vs padded MuJoCo C
     sensitivity: float     # alone vs alone with the start state moved by U(-1e-7, 1e-7): the robot's own chaos
     error_by_step: np.ndarray
+    padding_mjx: float = float("nan")   # padded MJX vs alone MJX, both float32 (compare(unpadded_mjx=True))
+    mjx_alone: float = float("nan")     # alone MJX (float32) vs alone MuJoCo C (compare(unpadded_mjx=True))
 
 
 def padded_c_models(sm, world: WorldSpec = WorldSpec(geoms=METAMORPH_FLOOR)) -> list[mujoco.MjModel]:
@@ -96,6 +103,32 @@ def to_padded(sm, robot: int, qpos, qvel) -> tuple[np.ndarray, np.ndarray]:
     return qp, vp
 
 
+def alone_mjx_model(m: Morphology, options: SolverOptions) -> mujoco.MjModel:
+    """The robot alone, for MJX: its own MJCF on the env's ft floor (a plane, top z = 1, contacts by the rule of the
+    enclosing `contact.floor` block) with the stacked model's self-contact gap (robot-robot contacts from
+    SELF_CONTACT_GAP of penetration, robot-floor contacts unchanged)."""
+    mm = alone_model(m, options, FLOOR)
+    mm.geom_margin[:] += np.where(np.asarray(mm.geom_bodyid) == 0, 0.5, -0.5) * SELF_CONTACT_GAP
+    return mm
+
+
+def _run_mjx_alone(mm: mujoco.MjModel, qpos, qvel, ctrls, substeps: int, bodies, floor_contacts: str,
+                   matmul_precision: str, compiler_options: dict | None) -> np.ndarray:
+    """Body positions (steps, len(bodies), 3) of the robot alone in MJX (float32), as `_run_c`."""
+    mx = mjx.put_model(mm, impl="jax")
+    d0 = mjx.make_data(mx, impl="jax")
+
+    def run(q, v, a):
+        def control(d, c):
+            d = jax.lax.fori_loop(0, substeps, lambda i, dd: mjx.step(mx, dd), d.replace(ctrl=c))
+            return d, d.xpos[bodies]
+        return jax.lax.scan(control, d0.replace(qpos=q, qvel=v), a)[1]
+    args = (jnp.asarray(qpos, jnp.float32), jnp.asarray(qvel, jnp.float32), jnp.asarray(ctrls, jnp.float32))
+    with contact.floor(floor_contacts), jax.default_matmul_precision(matmul_precision):
+        f = jax.jit(run, compiler_options=compiler_options).lower(*args).compile()
+    return np.asarray(f(*args), np.float64)
+
+
 def _run_c(mm: mujoco.MjModel, qpos, qvel, ctrls, substeps: int, bodies) -> np.ndarray:
     """Body positions (steps, len(bodies), 3) of MuJoCo C after each control step (at the start of the last
     substep, where MJX leaves xpos too)."""
@@ -119,10 +152,11 @@ def summary(values) -> dict:
 def compare(robots: Sequence[Morphology], options: SolverOptions = SolverOptions(), steps: int = 25,
             substeps: int = 4, seed: int = 0, tree: SharedTree | None = None,
             compiler_options: dict | None = None, floor_contacts: str = "box",
-            matmul_precision: str = "highest") -> list[Result]:
+            matmul_precision: str = "highest", unpadded_mjx: bool = False) -> list[Result]:
     """Compare every robot (see the module docstring). `floor_contacts`: "box" (MetaMorph's box floor in MuJoCo C,
     its rule in MJX) or "plane" (a plane in MuJoCo C, MuJoCo C's plane rule in MJX); `matmul_precision`: MJX's
-    (the env's `EnvConfig.matmul_precision`; it matters on GPUs with TF32)."""
+    (the env's `EnvConfig.matmul_precision`; it matters on GPUs with TF32); `unpadded_mjx`: also run each robot
+    alone in MJX (Result.padding_mjx)."""
     robots = tuple(robots)
     if floor_contacts not in ("box", "plane"):
         raise ValueError(f"floor_contacts={floor_contacts!r}: expected 'box' or 'plane'")
@@ -186,8 +220,16 @@ def compare(robots: Sequence[Morphology], options: SolverOptions = SolverOptions
         nudge = rng.uniform(-PERTURBATION, PERTURBATION, q.shape)
         x_nudged = _run_c(alone[r], q + nudge, v, actions[r], substeps, np.arange(1, 1 + m.num_nodes))
         err = np.abs(x_mjx - x_alone).max(axis=(1, 2))
+        padding_mjx = mjx_alone = float("nan")
+        if unpadded_mjx:
+            x_alone_mjx = _run_mjx_alone(alone_mjx_model(m, options), q, v, actions[r], substeps,
+                                         np.arange(1, 1 + m.num_nodes), floor_contacts, matmul_precision,
+                                         compiler_options)
+            padding_mjx = float(np.abs(x_mjx - x_alone_mjx).max())
+            mjx_alone = float(np.abs(x_alone_mjx - x_alone).max())
         out.append(Result(m.name, float(err.max()), float(np.abs(x_padded - x_alone).max()),
-                          float(np.abs(x_mjx - x_padded).max()), float(np.abs(x_nudged - x_alone).max()), err))
+                          float(np.abs(x_mjx - x_padded).max()), float(np.abs(x_nudged - x_alone).max()), err,
+                          padding_mjx, mjx_alone))
     return out
 
 
