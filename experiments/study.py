@@ -11,7 +11,8 @@ Run directories: <out>/<study>/<env>-<arch>-<run>-s<seed> (default out: runs/stu
 `experiments.run` run: rerunning the study resumes unfinished runs; finished ones are not retrained, and a set
 already evaluated at the run's last checkpoint (eval/<set>.json) is not evaluated again. `only=[a,b]` takes the
 study's runs a and b alone; `time_limit_min=N` ends the invocation after about N minutes of training (the run in
-training checkpoints, runs that did not finish are not evaluated; rerun to go on):
+training checkpoints, runs that did not finish are not evaluated, and of a finished batch only the evaluations that
+fit, EVAL_SET_MIN minutes per set and run, in the study file's order of sets over the seeds; rerun to go on):
 
     python -m experiments.study ab_rmomo_cell only=[scale_before,scale_after] seeds=[0,1] time_limit_min=9
 
@@ -42,7 +43,7 @@ from . import cli
 
 DEFAULT_ARCHS = ["rmomo", "modumorph"]
 MIN_TRAIN_MIN = 1.0     # with time_limit_min: do not start (compile) a training with less time than this left
-EVAL_RESERVE_MIN = 3.0  # ... nor an evaluation (a few sets of ~100 robots, compilation included, on one GPU)
+EVAL_SET_MIN = 1.5      # ... nor the evaluation of one set of one run (~100 robots, compilation included, one GPU)
 
 
 @dataclasses.dataclass
@@ -161,20 +162,29 @@ def run_study(c: StudyConfig) -> None:
                 print(f"[study] not finished: {', '.join(unfinished(members))}; rerun the same command to go on",
                       flush=True)
                 return
-        if minutes_left() < EVAL_RESERVE_MIN:
+        # with a time limit, as many (set, run) evaluations as fit, the study file's sets in order (each over the
+        # batch's seeds): every process decides from the same plan and clock, not from files only the main one has
+        jobs = [(s, r) for s in members[0].sets for r in members]
+        fit = len(jobs) if deadline is None else max(0, int(minutes_left() // EVAL_SET_MIN))
+        if fit == 0:
             print(f"[study] time limit: evaluation of {', '.join(str(r.dir) for r in members)} left for the rerun",
                   flush=True)
             return
         if distributed.is_main():
-            for r in members:
+            for r in members:                           # one evaluate_run (one checkpoint load) per run
                 step = RunDir(r.dir).latest_step()      # what evaluate_run evaluates
-                sets = [s for s in r.sets if not evaluated(r.dir, s, step, c.episodes)]
-                if sets != r.sets:
-                    print(f"[study] {r.dir}: {', '.join(s for s in r.sets if s not in sets)} already evaluated at "
+                chosen = [s for s, q in jobs[:fit] if q is r]
+                sets = [s for s in chosen if not evaluated(r.dir, s, step, c.episodes)]
+                if sets != chosen:
+                    print(f"[study] {r.dir}: {', '.join(s for s in chosen if s not in sets)} already evaluated at "
                           f"checkpoint {step}", flush=True)
                 if sets:
                     evaluate_run(r.dir, sets, episodes=c.episodes)
         distributed.barrier("evaluated")
+        if fit < len(jobs):
+            left = ", ".join(f"{r.dir}: {s}" for s, r in jobs[fit:])
+            print(f"[study] time limit: evaluation of {left} left for the rerun", flush=True)
+            return
     print(f"[study] done; report: python -m experiments.report runs=[{Path(c.out) / c.name}] out=<dir>")
 
 

@@ -131,6 +131,39 @@ def test_ab_studies_compose(capsys, unimals, name, archs, runs):
     assert all("stop_at=245" in ln for ln in lines) == (name != "kl_threshold")
 
 
+def test_study_time_limit_evaluates_what_fits(capsys, monkeypatch, tmp_path, unimals):
+    """With time_limit_min, a finished batch gets as many (set, run) evaluations as fit (EVAL_SET_MIN each), the study
+    file's sets in order over the seeds, one evaluate_run per run; the rest are named and left for the rerun; with
+    no time left none runs."""
+    from types import SimpleNamespace
+    from experiments import study
+
+    class Finished:                             # every run at its last checkpoint: nothing to train
+        def __init__(self, d):
+            pass
+
+        def latest_step(self):
+            return 245
+    calls = []
+    monkeypatch.setattr(study, "RunDir", Finished)
+    monkeypatch.setattr(study, "train", lambda cfg: pytest.fail("a finished run was trained"))
+    monkeypatch.setattr(study, "evaluated", lambda d, s, step, episodes: False)
+    monkeypatch.setattr(study, "evaluate_run", lambda d, sets, episodes: calls.append((Path(d).name, list(sets))))
+    monkeypatch.setattr(study, "use_compile_cache", lambda path: None)
+    monkeypatch.setattr(study, "time", SimpleNamespace(monotonic=lambda: 0.0))   # minutes left = the limit
+    args = ["ab_rmemo_context", "only=[no_context]", "seeds=[0,1]", f"out={tmp_path}"]
+    assert study.main([*args, f"time_limit_min={2.2 * study.EVAL_SET_MIN}"]) == 0       # 2 of 4 fit: val, both seeds
+    assert calls == [("ft-rmemo-no_context-s0", ["val"]), ("ft-rmemo-no_context-s1", ["val"])]
+    out = capsys.readouterr().out
+    assert "ft-rmemo-no_context-s0: train" in out and "left for the rerun" in out and "[study] done" not in out
+    calls.clear()
+    assert study.main([*args, f"time_limit_min={0.5 * study.EVAL_SET_MIN}"]) == 0
+    assert calls == [] and "left for the rerun" in capsys.readouterr().out
+    assert study.main([*args, "time_limit_min=100"]) == 0
+    assert calls == [("ft-rmemo-no_context-s0", ["val", "train"]), ("ft-rmemo-no_context-s1", ["val", "train"])]
+    assert "[study] done" in capsys.readouterr().out
+
+
 def test_study_only_selects_runs_and_names_the_known_ones(capsys, unimals):
     from experiments import study
     assert study.main(["ab_rmomo_cell", "only=[scale_after,residual]", "seeds=[3]", "dry_run=true"]) == 0
