@@ -24,6 +24,7 @@ import sys
 from typing import List, Optional
 
 from mjx_morph.nets import ARCHS, Model
+from mjx_morph.nets.zoo import RECOMMENDED
 from mjx_morph.run import RunConfig, make_model_for, register
 from mjx_morph.run.config import with_recommended
 from mjx_morph.sim.env import EnvConfig
@@ -87,12 +88,12 @@ def count_line(arch: str, task: str) -> tuple[str, bool]:
         else:
             line += f"  ({where}: {want}; MISMATCH by {n - want:+d})"
             ok = False
-    run = with_recommended(RunConfig(env=EnvConfig(task=task), arch=arch))
-    n_run = make_model_for(run).num_params()
-    if n_run != n:
-        changed = ", ".join(f"{k}={v}" for k, v in sorted(dataclasses.asdict(run.model).items())
-                            if v is not None and getattr(RunConfig().model, k) is None)
-        line += f"  (a run, with the measured default {changed}: {n_run}, {n_run - n:+d})"
+    recommended = RECOMMENDED.get(arch, {})
+    if recommended:
+        n_run = make_model_for(with_recommended(RunConfig(env=EnvConfig(task=task), arch=arch))).num_params()
+        if n_run != n:
+            changed = ", ".join(f"{k}={v}" for k, v in recommended.items())
+            line += f"  (a run, with the measured default {changed}: {n_run}, {n_run - n:+d})"
     return line, ok
 
 

@@ -38,7 +38,7 @@ from mujoco import mjx
 from ..unimal.mjcf import to_mjcf
 from ..unimal.morphology import MAX_NODES, Morphology
 from . import contact
-from .model import INERT_MARGIN, SELF_CONTACT_GAP, build_stacked_model, compile_padded, inert_geoms
+from .model import INERT_MARGIN, build_stacked_model, compile_padded, inert_geoms, self_contact_margin
 from .padding import SolverOptions, WorldSpec
 from .supertree import SharedTree
 from .terrain import Plane
@@ -105,11 +105,18 @@ def to_padded(sm, robot: int, qpos, qvel) -> tuple[np.ndarray, np.ndarray]:
 
 def alone_mjx_model(m: Morphology, options: SolverOptions) -> mujoco.MjModel:
     """The robot alone, for MJX: its own MJCF on the env's ft floor (a plane, top z = 1, contacts by the rule of the
-    enclosing `contact.floor` block) with the stacked model's self-contact gap (robot-robot contacts from
-    SELF_CONTACT_GAP of penetration, robot-floor contacts unchanged)."""
+    enclosing `contact.floor` block) with the stacked model's self-contact gap (`model.self_contact_margin`)."""
     mm = alone_model(m, options, FLOOR)
-    mm.geom_margin[:] += np.where(np.asarray(mm.geom_bodyid) == 0, 0.5, -0.5) * SELF_CONTACT_GAP
+    mm.geom_margin[:] += self_contact_margin(mm.geom_bodyid)
     return mm
+
+
+def _mjx_rollout(m, d, ctrls, substeps: int) -> jax.Array:
+    """xpos (steps, nbody, 3) of MJX from `d` after each control step of `substeps` physics steps under `ctrls`."""
+    def control(d, c):
+        d = jax.lax.fori_loop(0, substeps, lambda i, dd: mjx.step(m, dd), d.replace(ctrl=c))
+        return d, d.xpos
+    return jax.lax.scan(control, d, ctrls)[1]
 
 
 def _run_mjx_alone(mm: mujoco.MjModel, qpos, qvel, ctrls, substeps: int, bodies, floor_contacts: str,
@@ -119,10 +126,7 @@ def _run_mjx_alone(mm: mujoco.MjModel, qpos, qvel, ctrls, substeps: int, bodies,
     d0 = mjx.make_data(mx, impl="jax")
 
     def run(q, v, a):
-        def control(d, c):
-            d = jax.lax.fori_loop(0, substeps, lambda i, dd: mjx.step(mx, dd), d.replace(ctrl=c))
-            return d, d.xpos[bodies]
-        return jax.lax.scan(control, d0.replace(qpos=q, qvel=v), a)[1]
+        return _mjx_rollout(mx, d0.replace(qpos=q, qvel=v), a, substeps)[:, bodies]
     args = (jnp.asarray(qpos, jnp.float32), jnp.asarray(qvel, jnp.float32), jnp.asarray(ctrls, jnp.float32))
     with contact.floor(floor_contacts), jax.default_matmul_precision(matmul_precision):
         f = jax.jit(run, compiler_options=compiler_options).lower(*args).compile()
@@ -191,16 +195,8 @@ def compare(robots: Sequence[Morphology], options: SolverOptions = SolverOptions
     template = mjx.make_data(sm.model_for(0), impl="jax")
 
     def run(robot, q, v, a24, ctrl_src):
-        m = sm.model_for(robot)
-        d = template.replace(qpos=q, qvel=v)
-
-        def control(d, a):
-            ctrl = jnp.concatenate([jnp.clip(a, -1, 1), jnp.zeros(1)])[ctrl_src]
-            d = d.replace(ctrl=ctrl)
-            d = jax.lax.fori_loop(0, substeps, lambda i, dd: mjx.step(m, dd), d)
-            return d, d.xpos
-        _, xs = jax.lax.scan(control, d, a24)
-        return xs
+        ctrls = jnp.concatenate([jnp.clip(a24, -1, 1), jnp.zeros((a24.shape[0], 1))], axis=1)[:, ctrl_src]
+        return _mjx_rollout(sm.model_for(robot), template.replace(qpos=q, qvel=v), ctrls, substeps)
 
     args = (jnp.arange(R), jnp.asarray(qpos, jnp.float32), jnp.asarray(qvel, jnp.float32),
             jnp.asarray(act24, jnp.float32), jnp.asarray(tab.ctrl_src))

@@ -51,6 +51,13 @@ INERT_MARGIN = -1.0e4
 # max 5.8e-4 m (a larger gap disagrees with MuJoCo C on real shallow contacts).
 SELF_CONTACT_GAP = 1.0e-7
 
+
+def self_contact_margin(geom_bodyid) -> np.ndarray:
+    """What SELF_CONTACT_GAP adds to each geom's margin: -gap/2 on robot geoms, +gap/2 on world geoms (body 0), so
+    robot-robot contacts count from `gap` of penetration and robot-world contacts keep their margin."""
+    return np.where(np.asarray(geom_bodyid) == 0, 0.5, -0.5) * SELF_CONTACT_GAP
+
+
 # ModuMorph's fixed context bounds (metamorph/envs/modules/agent.py), in the order of the 35 static features
 _LIMB_BOUNDS = [
     ((-0.5, -0.45, -0.49), (0.5, 0.45, 2.04)),                              # body_pos
@@ -210,8 +217,7 @@ def build_stacked_model(robots: Sequence[Morphology], world: WorldSpec = WorldSp
         inert = inert_geoms(tree, r, mjm[r])
         margin = np.asarray(mx.geom_margin).copy()
         rbound = np.asarray(mx.geom_rbound).copy()
-        in_world = np.asarray(mjm[r].geom_bodyid) == 0
-        margin += np.where(in_world, 0.5, -0.5) * SELF_CONTACT_GAP
+        margin += self_contact_margin(mjm[r].geom_bodyid)
         margin[inert] = INERT_MARGIN
         rbound[inert] = INERT_MARGIN
         mxs[r] = mx.replace(geom_margin=margin, geom_rbound=rbound)
