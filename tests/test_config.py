@@ -166,13 +166,13 @@ def test_study_time_limit_evaluates_what_fits(capsys, monkeypatch, tmp_path, uni
 
 def test_study_only_selects_runs_and_names_the_known_ones(capsys, unimals):
     from experiments import study
-    assert study.main(["ab_rmomo_cell", "only=[scale_after,residual]", "seeds=[3]", "dry_run=true"]) == 0
+    assert study.main(["ab_rmomo_residual", "only=[residual,replace]", "seeds=[3]", "dry_run=true"]) == 0
     lines = capsys.readouterr().out.strip().splitlines()
     assert [ln.split("run_dir=")[1].split()[0].rsplit("/", 1)[1] for ln in lines] == \
-        ["ft-rmomo-scale_after-s3", "ft-rmomo-residual-s3"]
+        ["ft-rmomo-replace-s3", "ft-rmomo-residual-s3"]
     assert study.main(["ab_rmomo_cell", "only=[scale_afte]", "dry_run=true"]) == 2
     err = capsys.readouterr().err
-    assert "only=['scale_afte']" in err and "scale_before, scale_after, residual, scale_after_residual" in err
+    assert "only=['scale_afte']" in err and "scale_before, scale_after" in err
     # evaluation sets are checked before anything trains: gen/train has no val set
     assert study.main(["ab_rmomo_cell", "only=[scale_before]", "--", "robots=gen/train"]) == 2
     assert "no val set" in capsys.readouterr().err
