@@ -28,7 +28,7 @@ from mjx_morph.run import register
 from mjx_morph.sim import fidelity
 from mjx_morph.sim.env import EnvConfig
 from mjx_morph.sim.model import self_pair_summary
-from mjx_morph.sim.padding import SolverOptions, WorldSpec
+from mjx_morph.sim.padding import SolverOptions
 from mjx_morph.sim.supertree import build_shared_tree
 from mjx_morph.unimal.mutations import mutated_robots
 from mjx_morph.unimal.sets import load_set
@@ -79,7 +79,7 @@ def check(a: CheckSimConfig) -> None:
     print(f"# {rs.name}: shared tree of {tree.num_slots} bodies (nv {6 + 2 * tree.num_limb_slots}) "
           f"for {len(rs)} robots of at most {max(m.num_nodes for m in rs.robots)} bodies")
     opts0 = SolverOptions(iterations=a.iterations, ls_iterations=a.ls_iterations, self_collision=a.self_collision)
-    summary = self_pair_summary(rs.robots, WorldSpec(geoms=fidelity.FLOOR), opts0, tree)
+    summary = self_pair_summary(rs.robots, fidelity.FLOOR_WORLD, opts0, tree)
     if summary is not None:
         print("# " + summary.line(), flush=True)
     settings = [(a.iterations, a.ls_iterations)]
@@ -98,12 +98,13 @@ def check(a: CheckSimConfig) -> None:
               f"self-collision {'on' if a.self_collision else 'off'}, floor {a.floor_contacts}, {a.steps} control steps, "
               f"matmul precision {a.matmul_precision} on {jax.devices()[0].platform} "
               f"({time.time() - t0:.0f} s)")
-        fields = ["error", "padding", "mjx", "sensitivity"] + (["padding_mjx", "mjx_alone"] if a.unpadded_mjx else [])
+        fields = ["error", "padding", "mjx", "sensitivity"] + (["padding_mjx", "mjx_alone", "mjx_ulp"]
+                                                                if a.unpadded_mjx else [])
         print(" ".join([f"{'robot':40s}"] + [f"{f[:9]:>9s}" for f in fields]) + "   (m; error = padded MJX vs "
               "alone in MuJoCo C, padding = padded vs alone both in MuJoCo C, mjx = padded MJX vs padded MuJoCo C, "
               f"sensitivity = alone vs alone started {fidelity.PERTURBATION:g} away"
-              + (", padding_mjx = padded MJX vs alone in MJX, both float32, mjx_alone = alone in MJX vs alone in MuJoCo C)"
-                 if a.unpadded_mjx else ")"))
+              + (", padding_mjx = padded MJX vs alone in MJX, both float32, mjx_alone = alone in MJX vs alone in MuJoCo C, "
+                 "mjx_ulp = alone in MJX vs itself started one float32 ulp away)" if a.unpadded_mjx else ")"))
         for r in res:
             flag = "" if r.error <= a.tolerance else (
                 "   OVER TOLERANCE (as sensitive on its own)" if r.sensitivity >= 0.1 * r.error else "   OVER TOLERANCE")

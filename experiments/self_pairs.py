@@ -22,7 +22,7 @@ from omegaconf import MISSING
 import mujoco
 from mjx_morph.run import register
 from mjx_morph.sim import fidelity, padding, selfcontact
-from mjx_morph.sim.padding import SolverOptions, WorldSpec
+from mjx_morph.sim.padding import SolverOptions
 from mjx_morph.sim.supertree import build_shared_tree
 from mjx_morph.unimal.sets import load_set
 
@@ -53,7 +53,7 @@ def measure(a: SelfPairsConfig) -> None:
         node_pairs = [selfcontact.sampled_touching_pairs(m, a.samples, a.margin, a.seed, slack) for m in rs]
         touched[name] = (node_pairs, {selfcontact.slot_pair(tree, r, *p) for r, ps in enumerate(node_pairs)
                                       for p in ps})
-    world = WorldSpec(geoms=fidelity.FLOOR)
+    world = fidelity.FLOOR_WORLD
     mjx = {}
     for name, opts in (("no cut", SolverOptions(self_collision=True, self_collision_cut=False)),
                        ("cut", SolverOptions(self_collision=True, self_pairs=cut.kept))):

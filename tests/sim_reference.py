@@ -33,14 +33,16 @@ def _actuator_of(mm: mujoco.MjModel, j: int) -> int:
     return [a for a in range(mm.nu) if mm.actuator_trnid[a, 0] == j][0]
 
 
-def proprio(mm: mujoco.MjModel, d: mujoco.MjData) -> np.ndarray:
+def proprio(mm: mujoco.MjModel, d: mujoco.MjData, origin=(0.0, 0.0, 0.0)) -> np.ndarray:
+    """MetaMorph's proprioceptive observation of `d`; `origin`: MetaMorph's coordinates of the origin of `mm`'s world
+    (positions are observed in MetaMorph's world)."""
     out = np.zeros((MAX_LIMBS, 52))
     bs = nodes(mm)
     torso_x = d.xpos[bs[0], 0]
     for i, b in enumerate(bs):
         g = mm.body_geomadr[b]
-        xpos = d.xpos[b].copy()
-        xpos[0] -= torso_x
+        xpos = d.xpos[b] + np.asarray(origin)
+        xpos[0] = d.xpos[b, 0] - torso_x
         # mujoco-py's body_xvelp / body_xvelr: mj_jacBody (body frame origin) times qvel
         jacp, jacr = np.zeros((3, mm.nv)), np.zeros((3, mm.nv))
         mujoco.mj_jacBody(mm, d, jacp, jacr, b)

@@ -72,6 +72,13 @@ def test_reset(bundle):
         assert np.isfinite(prop).all() and (prop[m.num_nodes:] == 0).all()
         pos, _ = env.sm.world.start_pose(m.height)
         np.testing.assert_allclose(np.asarray(st.physics.qpos[i, :3]), pos, atol=0.0051)
+        # the planes are simulated with the torso starting on the ground at the origin (float32 resolves contacts
+        # finely there), and observed in MetaMorph's world: the torso z = z0 + 1 on ft, z0 + 1 - 73 sin(10 deg) on
+        # the incline (its start 2 m from the slab's lower end)
+        if not env.terrain.uses_hfield:
+            np.testing.assert_allclose(pos, (0.0, 0.0, m.height), atol=1e-12)
+            a = math.radians(task.incline_deg)
+            np.testing.assert_allclose(prop[0, 2], m.height + 1.0 - 73.0 * math.sin(a), atol=0.0051)
         assert pol.node_mask[r].sum() == m.num_nodes
     if task.hfield_obs:
         assert np.isfinite(np.asarray(st.obs.hfield)).all()
@@ -118,7 +125,7 @@ def test_fall_terminates(bundle):
                     "(tests/test_sim_tree.py::test_reward_and_terminations)")
     st = _reset(bundle)
     q = np.asarray(st.physics.qpos[0]).copy()
-    q[2] = 1.0 + 0.105                                  # torso resting on the floor, upside down
+    q[2] = 1.0 - env.terrain.origin[2] + 0.105           # torso resting on the floor (z = 1 in MetaMorph's world)
     q[3:7] = [0.0, 1.0, 0.0, 0.0]
     st = _set(st, 0, qpos=jnp.asarray(q), qvel=jnp.zeros_like(st.physics.qvel[0]))
     st = vstep(st, jnp.zeros((N, 24)), _sampler(env))
@@ -196,7 +203,7 @@ def test_proprio_and_context_match_numpy_reference(bundle):
             d = mujoco.MjData(ma)
             d.qpos[:], d.qvel[:] = q, v
             mujoco.mj_forward(ma, d)
-            want = ref.proprio(ma, d)
+            want = ref.proprio(ma, d, env.terrain.origin)
             qp, vp = fidelity.to_padded(env.sm, r, q, v)
             got = np.asarray(observe(r, qp, vp).proprio)
             np.testing.assert_allclose(got, want, rtol=1e-5, atol=2e-5, err_msg=f"{m.name} trial {trial}")
@@ -230,7 +237,7 @@ def test_observation_after_a_step_matches_mujoco_py_after_mj_step(bundle):
         d.qpos[:], d.qvel[:], d.ctrl[:] = q, v, a
         for _ in range(4):
             mujoco.mj_step(ma, d)
-        wants.append(ref.proprio(ma, d))
+        wants.append(ref.proprio(ma, d, env.terrain.origin))
         qp, vp = fidelity.to_padded(env.sm, r, q, v)
         actions[r, ent] = a
         st = _set(st, r, qpos=jnp.asarray(qp, jnp.float32), qvel=jnp.asarray(vp, jnp.float32))

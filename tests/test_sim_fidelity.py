@@ -37,6 +37,18 @@ def test_padded_mjx_matches_mujoco_c_at_default_settings():
         assert r.padding < 1e-5, (r.name, r.padding)
         assert 0.0 < r.padding_mjx < 1e-5, (r.name, r.padding_mjx)
         assert 0.0 < r.mjx_alone < fidelity.TOLERANCE, (r.name, r.mjx_alone)
+        assert 0.0 < r.mjx_ulp < fidelity.TOLERANCE, (r.name, r.mjx_ulp)     # float32's own spread: not nothing
+
+
+def test_ulp_nudge_moves_every_entry_one_float32_step():
+    x = np.random.default_rng(0).normal(size=1000) * np.logspace(-3, 2, 1000)
+    y = fidelity.ulp_nudge(x, np.random.default_rng(1))
+    x32 = x.astype(np.float32)
+    assert y.dtype == np.float32 and (y != x32).all()
+    # adjacent float32 values: their gap is the spacing above the smaller magnitude
+    gap = np.spacing(np.minimum(np.abs(x32), np.abs(y)))
+    np.testing.assert_array_equal(np.abs(y.astype(np.float64) - x32.astype(np.float64)), gap.astype(np.float64))
+    assert 0.3 < (y > x32).mean() < 0.7
 
 
 def _order(c):
@@ -70,8 +82,14 @@ def test_floor_contacts_equal_mujoco_c(incline):
     a = np.radians(incline)
     plane = terrain.Plane() if not incline else terrain.InclinedPlane(incline_deg=incline)
     plane_xml = plane.world().geoms.replace(' contype="0" conaffinity="1"', "")
-    box_xml = (f'<geom type="box" size="{75 if incline else 100} {20 if incline else 100} 1" '
+    # MetaMorph's floor box (centred at its world's origin, top face z = 1/cos(a) + tan(a) x) in the env's frame,
+    # whose origin is MetaMorph's `origin` (longer than the incline's 150 m slab, to reach the env's start)
+    ox, oy, oz = plane.origin
+    box_xml = (f'<geom type="box" size="100 {20 if incline else 100} 1" pos="{-ox!r} {-oy!r} {-oz!r}" '
                f'euler="0 {-incline!r} 0"/>')
+
+    def top(x):             # the floor's top at x (the env's frame)
+        return 1 / np.cos(a) + np.tan(a) * (x + ox) - oz
     rng = np.random.default_rng(0)
     seen = {1: 0, 2: 0}
     for i in range(40):
@@ -79,7 +97,7 @@ def test_floor_contacts_equal_mujoco_c(incline):
         q /= np.linalg.norm(q)
         length, radius = rng.uniform(0.05, 0.4), rng.uniform(0.03, 0.07)
         x = rng.uniform(-3, 3)
-        pos = (x, rng.uniform(-3, 3), 1 / np.cos(a) + np.tan(a) * x + rng.uniform(-0.05, 0.2))
+        pos = (x, rng.uniform(-3, 3), top(x) + rng.uniform(-0.05, 0.2))
         if i % 4 == 0:          # lying on the floor, both ends' centres above it: MuJoCo C gives two contacts
             t = rng.uniform(0, 2 * np.pi)
             q = np.array([np.cos(t / 2), 0.0, 0.0, np.sin(t / 2)])
@@ -87,8 +105,7 @@ def test_floor_contacts_equal_mujoco_c(incline):
             lying = np.zeros(4)
             mujoco.mju_mulQuat(lying, tilt, q)
             q = lying
-            top = 1 / np.cos(a) + np.tan(a) * x
-            pos = (x, pos[1], top + (radius - 0.01) / np.cos(a))
+            pos = (x, pos[1], top(x) + (radius - 0.01) / np.cos(a))
         mm, d, want = _c_contacts(box_xml, pos, q, length, radius)
         pm, pd, want_plane = _c_contacts(plane_xml, pos, q, length, radius)
         m = mjx.put_model(pm, impl="jax")

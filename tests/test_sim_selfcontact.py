@@ -11,7 +11,7 @@ from mujoco.mjx._src import collision_driver
 
 from mjx_morph.sim import fidelity, padding, selfcontact
 from mjx_morph.sim.model import build_stacked_model, compile_padded, self_pair_summary
-from mjx_morph.sim.padding import SolverOptions, WorldSpec
+from mjx_morph.sim.padding import SolverOptions
 from mjx_morph.sim.supertree import build_shared_tree
 from mjx_morph.unimal.mjcf import compile_model
 from mjx_morph.unimal.morphology import TORSO, Joint, Limb, Morphology
@@ -101,7 +101,7 @@ def _geom_pairs(mm):
 def test_padded_models_check_exactly_the_kept_pairs(robots):
     rs = robots[:3]
     tree = build_shared_tree(rs)
-    world = WorldSpec(geoms=fidelity.FLOOR)
+    world = fidelity.FLOOR_WORLD
     sm = build_stacked_model(rs, world, SolverOptions(self_collision=True))
     kept = sm.options.self_pairs
     assert kept == selfcontact.touching_slot_pairs(rs, sm.tree)
@@ -177,7 +177,7 @@ def test_limb_pair_budget_loses_no_pair(robots):
     from mujoco import mjx
     from mjx_morph.sim.model import limb_pair_budget
 
-    world = WorldSpec(geoms=fidelity.FLOOR)
+    world = fidelity.FLOOR_WORLD
     tree = build_shared_tree(robots)
     with_budget = build_stacked_model(robots, world, SolverOptions(), tree=tree)
     without = build_stacked_model(robots, world, SolverOptions(), tree=tree, self_pair_budget=False)

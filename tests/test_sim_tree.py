@@ -10,7 +10,7 @@ import mujoco
 
 from mjx_morph.sim import fidelity, model, padding, sampling, supertree
 from mjx_morph.sim.model import build_stacked_model, INERT_MARGIN
-from mjx_morph.sim.padding import SolverOptions, WorldSpec
+from mjx_morph.sim.padding import SolverOptions
 from sim_reference import available_robots
 from mjx_morph.unimal.sets import load_set, unimals_root
 
@@ -51,7 +51,7 @@ def test_tree_sizes_of_original_sets():
 
 def test_stacked_model_tables_and_masks():
     rs = _robots(3)
-    sm = build_stacked_model(rs, WorldSpec(geoms=fidelity.FLOOR), SolverOptions())
+    sm = build_stacked_model(rs, fidelity.FLOOR_WORLD, SolverOptions())
     R, S = len(rs), sm.tree.num_slots
     mm = sm.mj_models[0]
     assert mm.nbody == S + 1 and mm.nu == 2 * (S - 1) and mm.nv == 6 + 2 * (S - 1)
@@ -86,7 +86,7 @@ def test_padded_robot_matches_robot_alone_in_mujoco_c():
     opts = SolverOptions(iterations=100, ls_iterations=50, self_collision=False)
     tree = supertree.build_shared_tree(rs)
     # compiled as the stacked model compiles them (the solver tolerance rescaled for the locks' armature)
-    padded = model.compile_padded(rs, tree, WorldSpec(geoms=fidelity.METAMORPH_FLOOR), opts)
+    padded = model.compile_padded(rs, tree, fidelity.METAMORPH_WORLD, opts)
     for r, m in enumerate(rs):
         mp = padded[r]
         ma = fidelity.alone_model(m, opts)
@@ -181,6 +181,8 @@ def test_reward_and_terminations():
                                mask)
         assert bool(side.out_of_bounds) == (task.side_limit is not None)
     # incline ground: MetaMorph's array 1 + tan(10 deg) * floor(10 x) / 10
-    inc = TASKS["incline"]
-    g = float(terrain.for_task(inc).ground_height(terrain.NoTerrain(), jnp.float32(-71.89), jnp.float32(0.0)))
+    # (at MetaMorph's x = -71.89; the env's frame is MetaMorph's world moved by -origin)
+    inc = terrain.for_task(TASKS["incline"])
+    ox, _, oz = inc.origin
+    g = float(inc.ground_height(terrain.NoTerrain(), jnp.float32(-71.89 - ox), jnp.float32(0.0))) + oz
     np.testing.assert_allclose(g, 1 + np.tan(np.radians(10)) * np.floor(-718.9) / 10, atol=1e-3)

@@ -53,6 +53,9 @@ Deviations from MetaMorph / ModuMorph (each documented in its module):
   (terrain/corridor.py), obstacles are columns standing on the floor instead of boxes floating 0.1 m above it
   (terrain/obstacles.py); their terrain contacts are MuJoCo C's height-field contacts (hfield_contact.py), at
   most 32 per geom and, with the robot's own, at most 64 per env, the deepest (`EnvConfig.contact_budget`);
+- ft and incline are simulated in MetaMorph's world moved so that the torso starts on the ground at the origin
+  (`Terrain.origin`: ft 1 m down, incline 72 m along x and 11.7 m up), where float32 resolves the contacts finely;
+  the observation adds the origin back (observation.py), so the policy sees MetaMorph's coordinates (terrain/);
 - capsule masses of MuJoCo >= 2.1 (3-5% above MuJoCo 2.0) (padding.py);
 - a NaN or exploding state ends the episode as `unstable` (MetaMorph: a MuJoCo exception silently skipped the
   remaining substeps) (env.py);

@@ -215,7 +215,7 @@ class UnimalEnv:
     def _obs(self, d, qpos, qvel, tab, pol, robot, terrain_state, prev_action, yaw_aligned: bool) -> Obs:
         cvel = observation.body_velocity(self._ancestors, d.cdof, qvel)     # mujoco-py's, after the step
         prop = observation.proprio(d.xpos, d.xquat, cvel, d.subtree_com, qpos, qvel, tab, pol.node_mask,
-                                   pol.act_mask)
+                                   pol.act_mask, self.terrain.origin)
         if self.task.hfield_obs:
             if yaw_aligned:
                 yaw = jnp.float32(0.0)

@@ -5,7 +5,8 @@ qpos/qvel entry) under the same actions (N(0, 0.9) per control step, through the
 `steps` control steps of 4 substeps, with the same options (timestep, solver and line-search iterations,
 self-collision on/off, parent-child filtering):
 - `alone`:  the robot's own MJCF (`unimal.mjcf.to_mjcf`) in MuJoCo C (float64), on MetaMorph's ft floor (a box of
-            half-size 100 x 100 x 1 at the origin, top z = 1) and, with self-collision on, every non-parent pair;
+            half-size 100 x 100 x 1, top z = 1 in MetaMorph's world) and, with self-collision on, every non-parent
+            pair;
 - `padded C`: the robot padded onto the set's shared tree (locked joints, inert slots, the set's self-collision
             pair cut) in MuJoCo C (float64), on the same box;
 - `padded MJX`: the same padded robot in the stacked MJX model (float32, all robots vmapped at once) on the env's
@@ -16,8 +17,11 @@ For each robot the largest world-position error of any body over the steps is re
 padded MJX against alone (everything we change), `padding` = padded C against alone (the padding and the pair cut
 alone, same float64 engine), `mjx` = padded MJX against padded C (MJX and float32 alone, same model), and optionally
 `padding_mjx` = padded MJX against alone MJX (the padding in float32, where the two programs' different rounding is
-part of the difference; in float64 C that rounding is ~1e-16 and `padding` sees the padding alone) and `mjx_alone` =
-alone MJX against alone C (MJX and float32 without the padding). These robots
+part of the difference; in float64 C that rounding is ~1e-16 and `padding` sees the padding alone), `mjx_alone` =
+alone MJX against alone C (MJX and float32 without the padding) and `mjx_ulp` = alone MJX against itself started
+one float32 step (ulp) away in every qpos / qvel entry: float32's own spread for that robot, the size of difference
+two float32 programs that round differently can show with nothing else different. Every simulation runs in the
+env's frame (`padding.WorldSpec.origin`: MetaMorph's world moved down 1 m, floor top at z = 0). These robots
 are chaotic under tiny changes (a tiny difference at a contact onset grows into a different trajectory), so the
 horizon is short (25 control steps = 0.5 s), and `sensitivity` measures each robot's own chaos: the robot alone
 against itself started 1e-7 away. MuJoCo C's box-face rule switches one end's contact off when the other end's
@@ -43,22 +47,28 @@ from .padding import SolverOptions, WorldSpec
 from .supertree import SharedTree
 from .terrain import Plane
 
-FLOOR = Plane().world().geoms          # ft's floor in MJX: a plane, top z = 1
-METAMORPH_FLOOR = '    <geom name="floor" type="box" size="100 100 1" pos="0 0 0" contype="0" conaffinity="1"/>'
+FLOOR_WORLD = Plane().world()          # ft's world in MJX: a plane, top z = 0 (MetaMorph's z = 1: `origin`)
+FLOOR = FLOOR_WORLD.geoms
+#: MetaMorph's ft floor, a box of half-height 1 centred at z = 0 in its world, in the env's frame
+METAMORPH_FLOOR = (f'    <geom name="floor" type="box" size="100 100 1" pos="0 0 {-FLOOR_WORLD.origin[2]:g}" '
+                   'contype="0" conaffinity="1"/>')
+METAMORPH_WORLD = WorldSpec(geoms=METAMORPH_FLOOR, origin=FLOOR_WORLD.origin)
 TOLERANCE = 1e-3
 PERTURBATION = 1e-7     # m / rad: the start-state nudge of the sensitivity column
 
 
 def alone_model(m: Morphology, options: SolverOptions, floor: str = METAMORPH_FLOOR) -> mujoco.MjModel:
-    """The robot alone in MuJoCo C, on MetaMorph's ft floor (or `floor`, top z = 1), with the padded model's
-    options and contact filter."""
-    xml = to_mjcf(m, floor=True, z_offset=1.0)
+    """The robot alone in MuJoCo C, on MetaMorph's ft floor (or `floor`, top z = 0 in the env's frame, 1 in
+    MetaMorph's), standing where the env starts it, with the padded model's options and contact filter."""
+    z_offset = FLOOR_WORLD.start_pose(m.height)[0][2] - m.height
+    xml = to_mjcf(m, floor=True, z_offset=z_offset)
     xml = xml.replace('<geom name="floor" type="plane" size="50 50 0.1" pos="0 0 0"/>', floor.strip())
     mm = mujoco.MjModel.from_xml_string(xml)
     floor = mujoco.mj_name2id(mm, mujoco.mjtObj.mjOBJ_GEOM, "floor")
     top = mm.geom_pos[floor][2] + (mm.geom_size[floor][2] if mm.geom_type[floor] == mujoco.mjtGeom.mjGEOM_BOX else 0)
-    if floor < 0 or top != 1.0:
-        raise RuntimeError("alone_model: could not place the floor top at z = 1 (to_mjcf's floor line changed?)")
+    if floor < 0 or top != z_offset:
+        raise RuntimeError(f"alone_model: could not place the floor top at z = {z_offset:g} (to_mjcf's floor line "
+                           "changed?)")
     robot = np.arange(mm.ngeom) != floor
     mm.geom_contype[robot] = 1
     mm.geom_conaffinity[robot] = 1 if options.self_collision else 0
@@ -78,9 +88,10 @@ class Result:
     error_by_step: np.ndarray
     padding_mjx: float = float("nan")   # padded MJX vs alone MJX, both float32 (compare(unpadded_mjx=True))
     mjx_alone: float = float("nan")     # alone MJX (float32) vs alone MuJoCo C (compare(unpadded_mjx=True))
+    mjx_ulp: float = float("nan")       # alone MJX vs alone MJX started one float32 ulp away (compare(unpadded_mjx=True))
 
 
-def padded_c_models(sm, world: WorldSpec = WorldSpec(geoms=METAMORPH_FLOOR)) -> list[mujoco.MjModel]:
+def padded_c_models(sm, world: WorldSpec = METAMORPH_WORLD) -> list[mujoco.MjModel]:
     """The stacked model's padded robots compiled for MuJoCo C in `world` (MetaMorph's box floor by default), with
     the stacked model's options (self-collision pair cut included) and its inert geoms never in contact."""
     out = compile_padded(sm.robots, sm.tree, world, sm.options)
@@ -104,7 +115,7 @@ def to_padded(sm, robot: int, qpos, qvel) -> tuple[np.ndarray, np.ndarray]:
 
 
 def alone_mjx_model(m: Morphology, options: SolverOptions) -> mujoco.MjModel:
-    """The robot alone, for MJX: its own MJCF on the env's ft floor (a plane, top z = 1, contacts by the rule of the
+    """The robot alone, for MJX: its own MJCF on the env's ft floor (a plane, top z = 0, contacts by the rule of the
     enclosing `contact.floor` block) with the stacked model's self-contact gap (`model.self_contact_margin`)."""
     mm = alone_model(m, options, FLOOR)
     mm.geom_margin[:] += self_contact_margin(mm.geom_bodyid)
@@ -119,18 +130,27 @@ def _mjx_rollout(m, d, ctrls, substeps: int) -> jax.Array:
     return jax.lax.scan(control, d, ctrls)[1]
 
 
-def _run_mjx_alone(mm: mujoco.MjModel, qpos, qvel, ctrls, substeps: int, bodies, floor_contacts: str,
-                   matmul_precision: str, compiler_options: dict | None) -> np.ndarray:
-    """Body positions (steps, len(bodies), 3) of the robot alone in MJX (float32), as `_run_c`."""
+def ulp_nudge(x, rng: np.random.Generator) -> np.ndarray:
+    """`x` in float32 with every entry moved one float32 step (ulp) up or down at random."""
+    x = np.asarray(x, np.float32)
+    return np.where(rng.random(x.shape) < 0.5, np.nextafter(x, np.float32(-np.inf)), np.nextafter(x, np.float32(np.inf)))
+
+
+def _run_mjx_alone(mm: mujoco.MjModel, starts, ctrls, substeps: int, bodies, floor_contacts: str,
+                   matmul_precision: str, compiler_options: dict | None) -> list[np.ndarray]:
+    """Body positions (steps, len(bodies), 3) of the robot alone in MJX (float32), as `_run_c`, from each (qpos,
+    qvel) of `starts` (one compilation)."""
     mx = mjx.put_model(mm, impl="jax")
     d0 = mjx.make_data(mx, impl="jax")
 
     def run(q, v, a):
         return _mjx_rollout(mx, d0.replace(qpos=q, qvel=v), a, substeps)[:, bodies]
-    args = (jnp.asarray(qpos, jnp.float32), jnp.asarray(qvel, jnp.float32), jnp.asarray(ctrls, jnp.float32))
+
+    def args(q, v):
+        return jnp.asarray(q, jnp.float32), jnp.asarray(v, jnp.float32), jnp.asarray(ctrls, jnp.float32)
     with contact.floor(floor_contacts), jax.default_matmul_precision(matmul_precision):
-        f = jax.jit(run, compiler_options=compiler_options).lower(*args).compile()
-    return np.asarray(f(*args), np.float64)
+        f = jax.jit(run, compiler_options=compiler_options).lower(*args(*starts[0])).compile()
+    return [np.asarray(f(*args(q, v)), np.float64) for q, v in starts]
 
 
 def _run_c(mm: mujoco.MjModel, qpos, qvel, ctrls, substeps: int, bodies) -> np.ndarray:
@@ -165,7 +185,7 @@ def compare(robots: Sequence[Morphology], options: SolverOptions = SolverOptions
     if floor_contacts not in ("box", "plane"):
         raise ValueError(f"floor_contacts={floor_contacts!r}: expected 'box' or 'plane'")
     c_floor = METAMORPH_FLOOR if floor_contacts == "box" else FLOOR
-    sm = build_stacked_model(robots, WorldSpec(geoms=FLOOR), options, tree=tree)
+    sm = build_stacked_model(robots, FLOOR_WORLD, options, tree=tree)
     R = len(robots)
     nq, nv = sm.mj_models[0].nq, sm.mj_models[0].nv
     rng = np.random.default_rng(seed)
@@ -204,7 +224,7 @@ def compare(robots: Sequence[Morphology], options: SolverOptions = SolverOptions
     with contact.floor(floor_contacts), jax.default_matmul_precision(matmul_precision):
         f = jax.jit(jax.vmap(run), compiler_options=compiler_options).lower(*args).compile()
     xs = np.asarray(f(*args))
-    padded_c = padded_c_models(sm, WorldSpec(geoms=c_floor))
+    padded_c = padded_c_models(sm, dataclasses.replace(FLOOR_WORLD, geoms=c_floor))
     out = []
     for r, m in enumerate(robots):
         real = bodies[r, :m.num_nodes]
@@ -216,16 +236,17 @@ def compare(robots: Sequence[Morphology], options: SolverOptions = SolverOptions
         nudge = rng.uniform(-PERTURBATION, PERTURBATION, q.shape)
         x_nudged = _run_c(alone[r], q + nudge, v, actions[r], substeps, np.arange(1, 1 + m.num_nodes))
         err = np.abs(x_mjx - x_alone).max(axis=(1, 2))
-        padding_mjx = mjx_alone = float("nan")
+        padding_mjx = mjx_alone = mjx_ulp = float("nan")
         if unpadded_mjx:
-            x_alone_mjx = _run_mjx_alone(alone_mjx_model(m, options), q, v, actions[r], substeps,
-                                         np.arange(1, 1 + m.num_nodes), floor_contacts, matmul_precision,
-                                         compiler_options)
+            x_alone_mjx, x_ulp = _run_mjx_alone(
+                alone_mjx_model(m, options), [(q, v), (ulp_nudge(q, rng), ulp_nudge(v, rng))], actions[r],
+                substeps, np.arange(1, 1 + m.num_nodes), floor_contacts, matmul_precision, compiler_options)
             padding_mjx = float(np.abs(x_mjx - x_alone_mjx).max())
             mjx_alone = float(np.abs(x_alone_mjx - x_alone).max())
+            mjx_ulp = float(np.abs(x_ulp - x_alone_mjx).max())
         out.append(Result(m.name, float(err.max()), float(np.abs(x_padded - x_alone).max()),
                           float(np.abs(x_mjx - x_padded).max()), float(np.abs(x_nudged - x_alone).max()), err,
-                          padding_mjx, mjx_alone))
+                          padding_mjx, mjx_alone, mjx_ulp))
     return out
 
 

@@ -2,7 +2,7 @@
 
 Token t = 0 is the torso, then the robot's limbs in the MuJoCo body order of its own file, zero rows for padding.
 Per token (indices into the 52):
-  0-2   body_xpos (x replaced by x - x_torso)      3-5   body_xvelp     6-8  body_xvelr     9-12  body_xquat
+  0-2   body_xpos (x replaced by x - x_torso; y, z in MetaMorph's world)      3-5   body_xvelp     6-8  body_xvelr     9-12  body_xquat
   13-15 body_pos   16-18 body_ipos   19-22 body_iquat   23-26 geom_quat   27 body_mass   28-29 body_shape
   30-40 joint slot 0 (x): qpos (scaled to [0, 1] over the range), qvel, jnt_pos 3, jnt_range 2, jnt_axis 3, gear
   41-51 joint slot 1 (y): the same
@@ -55,13 +55,15 @@ def object_velocity(cvel: jax.Array, xpos: jax.Array, subtree_com: jax.Array) ->
     return lin, ang
 
 
-def proprio(xpos, xquat, cvel, subtree_com, qpos, qvel, tab, node_mask, act_mask) -> jax.Array:
+def proprio(xpos, xquat, cvel, subtree_com, qpos, qvel, tab, node_mask, act_mask,
+            origin=(0.0, 0.0, 0.0)) -> jax.Array:
     """(12, 52) float32 observation of one env. Arrays are one env's MJX data, `cvel` from `body_velocity` with the
     current qvel; `tab` one robot's `Tables` row. All robot bodies hang from the torso (body 1), so the root
-    subtree com is `subtree_com[1]`."""
+    subtree com is `subtree_com[1]`. `origin`: MetaMorph's coordinates of the simulation's origin (the terrain's),
+    added to the observed y and z so that they are MetaMorph's."""
     b = tab.body_of_token
     p = xpos[b]
-    p = p.at[:, 0].add(-xpos[1, 0])
+    p = p.at[:, 0].add(-xpos[1, 0]).at[:, 1].add(origin[1]).at[:, 2].add(origin[2])
     lin, ang = object_velocity(cvel[b], xpos[b], subtree_com[1])
     q = (qpos[tab.qadr_of_action] - tab.jnt_lo) / tab.jnt_span
     v = qvel[tab.vadr_of_action]

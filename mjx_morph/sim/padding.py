@@ -60,18 +60,26 @@ INERT_RADIUS = 1.0e-3
 
 @dataclasses.dataclass(frozen=True)
 class WorldSpec:
-    """What the task puts around the robot: MJCF snippets and the torso's start pose."""
+    """What the task puts around the robot: MJCF snippets and the torso's start pose.
+
+    `origin` is where this world's origin lies in MetaMorph's world: the simulation is MetaMorph's world moved by
+    -origin (positions here + origin = MetaMorph's). The planes put it at the torso's start on the ground, so that
+    contacts are decided near z = 0 where float32 resolves positions finely (MetaMorph's floor top is at z = 1, where
+    float32's spacing is 1.19e-7 m; the incline's start at x = -72 m, z = -11.7 m, where it is 7.6e-6 m)."""
     assets: str = ""                      # inside <asset>
-    geoms: str = ""                       # inside <worldbody>, before the robot
+    geoms: str = ""                       # inside <worldbody>, before the robot (in this world's frame)
     incline_deg: float = 0.0              # torso start pose of the incline task (`start_pose`)
+    origin: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
     def start_pose(self, z0: float):
-        """Torso start position and euler angles (degrees, or None) for a robot of standing height z0: on the
-        floor top z = 1, or 2 m from the lower end of the tilted slab, perpendicular to it."""
+        """Torso start position (this world's frame) and euler angles (degrees, or None) for a robot of standing
+        height z0: in MetaMorph's world on the floor top z = 1, or 2 m from the lower end of the tilted slab,
+        perpendicular to it."""
+        ox, oy, oz = self.origin
         if self.incline_deg:
             a = math.radians(self.incline_deg)
-            return (math.cos(a) * -73.0, 0.0, z0 + 1.0 - math.sin(a) * 73.0), (0.0, -self.incline_deg, 0.0)
-        return (0.0, 0.0, z0 + 1.0), None
+            return (math.cos(a) * -73.0 - ox, -oy, (1.0 - math.sin(a) * 73.0 - oz) + z0), (0.0, -self.incline_deg, 0.0)
+        return (-ox, -oy, (1.0 - oz) + z0), None
 
 
 @dataclasses.dataclass(frozen=True)

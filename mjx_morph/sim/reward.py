@@ -5,7 +5,8 @@ reward = FORWARD_REWARD_WEIGHT * (x_torso(t+1) - x_torso(t)) / 0.02 [/ cos(10 de
 x_torso is the world x of `torso/0` as MuJoCo's data holds it after the step (see observation.py: kinematics of the
 start of the last substep, as MetaMorph reads it).
 
-Terminations: fall when torso_height = round(z_torso - ground(x, y), 3) <= (z0 - 0.2) * STAND_HEIGHT_RATIO;
+Terminations: fall when torso_height = round(z_torso - ground(x, y), 3) <= (z0 - 0.2) * STAND_HEIGHT_RATIO (both
+heights in the simulation's frame, `Terrain.origin`);
 |y_torso| >= 19 for incline, csr and obstacle; the 1000-step limit is a truncation, not a terminal.
 """
 from __future__ import annotations

@@ -2,7 +2,7 @@
 
 | task     | terrain (physics)                            | stand ratio | side limit   | height map | decoder  | return range |
 |----------|----------------------------------------------|-------------|--------------|------------|----------|--------------|
-| ft       | plane, top z = 1                             | 0.5         | none         | no         | []       | 52 / 5008    |
+| ft       | plane, top z = 1 (0 simulated, terrain/)     | 0.5         | none         | no         | []       | 52 / 5008    |
 | incline  | plane tilted -10 deg about y (uphill +x)     | 0.2         | abs(y) >= 19 | no         | []       | -74 / 3751   |
 | csr      | per-episode corridor, height-field patch     | 0.3         | abs(y) >= 19 | yes        | [64]     | 71 / 3000    |
 | obstacle | floor + walls + 50 boxes, height-field patch | 0.5         | abs(y) >= 19 | yes        | [64, 64] | 126 / 2403   |
@@ -30,7 +30,6 @@ from .terrain import KINDS as TERRAIN_KINDS
 CONTROL_DT = 0.02
 FRAME_SKIP = 4
 EPISODE_LENGTH = 1000
-FLOOR_Z = 1.0            # TERRAIN.SIZE[2]: floor top where the robot starts
 FLOOR_OFFSET = 0.2       # TERRAIN.FLOOR_OFFSET: orig_height = z0 - 0.2
 RESET_NOISE = 0.005      # ENV.RESET_NOISE_SCALE
 

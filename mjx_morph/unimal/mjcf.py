@@ -38,7 +38,7 @@ _num, _vec = format_number, format_vector     # short names for this module's f-
 
 def to_mjcf(m: Morphology, *, sites: bool = False, floor: bool = False, z_offset: float = 0.0) -> str:
     """MJCF text for one robot. `floor` adds a plane at z = 0 (for stand-alone checks); `z_offset` raises the
-    torso (the environments put the floor top at z = 1)."""
+    torso (MetaMorph's worlds put the floor top at z = 1; ours at 0, sim/terrain)."""
     lines = [
         f"<mujoco model={quoteattr(m.name)}>",
         '  <compiler angle="degree"/>',

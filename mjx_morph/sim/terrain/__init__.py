@@ -2,6 +2,7 @@
 
     terr = terrain.for_task(task, robots)      # by `Task.terrain`: Plane, InclinedPlane, CorridorField, ObstacleField
     terr.world()                               # the task's MJCF around the robot (padding.WorldSpec)
+    terr.origin                                # MetaMorph's coordinates of the simulation's origin
     state = terr.generate(key)                 # the per-episode random terrain (NoTerrain for the planes)
     terr.ground_height(state, x, y)            # ground z under the torso (the torso height of the fall check)
     # height-field kinds only (terr.uses_hfield):
@@ -11,7 +12,11 @@
     terr.hfield_obs(state, x, y, yaw)          # the 1410-value height-map observation
 
 Every method is pure JAX (jit / vmap), the terrain objects are static (frozen dataclasses holding Python
-numbers). ft and incline are infinite planes (tasks.py). csr and obstacle are built on MetaMorph's height-array grid
+numbers). ft and incline are infinite planes (tasks.py), simulated in MetaMorph's world moved so that the torso
+starts on the ground at the origin (`origin`, padding.WorldSpec: float32 resolves contacts there 8x finer on ft and
+~60x on the incline than at MetaMorph's coordinates); positions, heights and `ground_height` are in that frame, and
+the observation adds `origin` back, so the policy sees MetaMorph's numbers. The height-field kinds keep MetaMorph's
+frame (origin 0). csr and obstacle are built on MetaMorph's height-array grid
 (`grid.py`): `height` is `H` with its padding (csr: -10 outside the corridor; obstacle: walls 4 in a 10-cell ring
 around the 1000 x 400 floor, -10 beyond), rounded to 3 decimals as MetaMorph rounds it; the torso height and the
 observation read it, and the physics is one P x P height-field patch that follows the torso, refilled at every
@@ -36,6 +41,8 @@ from ..padding import WorldSpec
 from . import corridor, grid, obstacles
 from .corridor import Corridor
 from .grid import DIVS, GAP, ROWS, Z_HI, Z_LO, cell_of
+
+FLOOR_TOP = 1.0     # TERRAIN.SIZE[2]: MetaMorph's floor top (ft) and the slab's top where the incline's torso starts
 from .obstacles import Obstacles
 
 
@@ -62,21 +69,31 @@ class Terrain:
         return NoTerrain()
 
     def ground_height(self, state, x: jax.Array, y: jax.Array) -> jax.Array:
-        """Ground z used for the torso height (MetaMorph's UnimalHeightObs)."""
+        """Ground z used for the torso height (MetaMorph's UnimalHeightObs), at (x, y) of the simulation's frame,
+        in that frame."""
         raise NotImplementedError
+
+    @property
+    def origin(self) -> tuple[float, float, float]:
+        """MetaMorph's coordinates of the simulation's origin (padding.WorldSpec.origin)."""
+        return (0.0, 0.0, 0.0)
 
 
 @dataclasses.dataclass(frozen=True)
 class Plane(Terrain):
-    """ft: an infinite plane, top z = 1."""
+    """ft: an infinite plane, MetaMorph's floor top z = 1, simulated at z = 0 (origin (0, 0, 1))."""
     kind: ClassVar[str] = "plane"
 
+    @property
+    def origin(self):
+        return (0.0, 0.0, FLOOR_TOP)
+
     def world(self) -> WorldSpec:
-        return WorldSpec(geoms='    <geom name="floor" type="plane" size="0 0 1" pos="0 0 1" '
-                               'contype="0" conaffinity="1"/>')
+        return WorldSpec(geoms='    <geom name="floor" type="plane" size="0 0 1" pos="0 0 0" '
+                               'contype="0" conaffinity="1"/>', origin=self.origin)
 
     def ground_height(self, state, x, y):
-        return jnp.float32(1.0)
+        return jnp.float32(0.0)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -90,19 +107,27 @@ class InclinedPlane(Terrain):
     def from_task(cls, task, robots):
         return cls(incline_deg=task.incline_deg)
 
+    @property
+    def origin(self):
+        """The slab's top face below the torso's start: x = -73 cos(a), z = 1 - 73 sin(a) in MetaMorph's world."""
+        a = np.radians(self.incline_deg)
+        return (float(-73.0 * np.cos(a)), 0.0, float(FLOOR_TOP - 73.0 * np.sin(a)))
+
     def world(self) -> WorldSpec:
         a = np.radians(self.incline_deg)
-        # the slab's top face: z = 1/cos(a) + tan(a) x
-        return WorldSpec(geoms=f'    <geom name="floor" type="plane" size="0 0 1" pos="0 0 {float(1 / np.cos(a))!r}" '
-                               f'euler="0 {-float(self.incline_deg)!r} 0" contype="0" conaffinity="1"/>',
-                         incline_deg=self.incline_deg)
+        # the slab's top face in MetaMorph's world, z = 1/cos(a) + tan(a) x, is z = tan(a) x + 1/cos(a) - 1 here
+        # (its point above the origin given as the plane's position, so no large coordinate enters its contacts)
+        return WorldSpec(geoms=f'    <geom name="floor" type="plane" size="0 0 1" '
+                               f'pos="0 0 {float(1 / np.cos(a) - 1)!r}" euler="0 {-float(self.incline_deg)!r} 0" '
+                               'contype="0" conaffinity="1"/>', incline_deg=self.incline_deg, origin=self.origin)
 
     def ground_height(self, state, x, y):
         # H = 1 + tan(a) (col/10 - 75) over the 1500 slab columns, -10 padding beyond; not clipped at 0
-        col = jnp.floor(x * DIVS)
+        ox, _, oz = self.origin
+        col = jnp.floor((x + ox) * DIVS)
         h = 1.0 + np.tan(np.radians(self.incline_deg)) * col / DIVS
         h = jnp.round(h, 3)
-        return jnp.where((col >= -750) & (col < 750), h, GAP)
+        return jnp.where((col >= -750) & (col < 750), h, GAP) - oz
 
 
 @dataclasses.dataclass(frozen=True)
