@@ -114,7 +114,8 @@ def test_study_plan_passes_env_options_and_extra_overrides(capsys):
     assert study.main(["no_such_study"]) == 2 and "no study 'no_such_study'" in capsys.readouterr().err
 
 
-@pytest.mark.parametrize("name,archs,runs", [("ab_rmomo_cell", {"rmomo"}, 4), ("ab_rmemo_context", {"rmemo"}, 3),
+@pytest.mark.parametrize("name,archs,runs", [("ab_rmomo_cell", {"rmomo"}, 2), ("ab_rmomo_residual", {"rmomo"}, 2),
+                                             ("ab_rmemo_context", {"rmemo"}, 3),
                                              ("ab_geometry", {"rmomo", "modumorph"}, 3),
                                              ("ab_precision", {"rmomo", "modumorph"}, 3),
                                              ("kl_threshold", {"metamorph", "modumorph", "rmemo", "rmomo"}, 2)])
