@@ -6,6 +6,7 @@
     python -m experiments.check_sim unimal100/train mutated=1000    # 1000 mutants of the train robots, one tree
     python -m experiments.check_sim unimal100/train unpadded_mjx=true   # + each robot alone in MJX (~10 s each)
     python -m experiments.check_sim unimal100/train task=csr        # height-field tasks: MJX vs MuJoCo C, same patches
+    python -m experiments.check_sim unimal100/train task=incline    # the incline: MJX vs MuJoCo C on MetaMorph's slab
     python -m experiments.check_sim unimal100/train task=csr num_robots=5 hfield_contacts=mjx   # MJX's own collider
 
 Prints per robot the worst body-position error (m) over `steps` control steps of the padded MJX robot against the
@@ -50,8 +51,9 @@ class CheckSimConfig:
     seed: int = 0
     floor_contacts: str = "box"              # box: MetaMorph's floor (MuJoCo C box, its rule in MJX); plane: a plane
     matmul_precision: str = _ENV.matmul_precision   # MJX's matmul precision: highest | default (TF32 on GPUs)
-    task: str = "ft"                         # csr | obstacle: compare the padded MJX env with the same padded model in
-                                             # MuJoCo C on the same height-field patches (fidelity.compare_hfield)
+    task: str = "ft"                         # incline | csr | obstacle: compare the padded MJX env with the same padded
+                                             # model in MuJoCo C on MetaMorph's slab or on the same height-field
+                                             # patches (fidelity.compare_task)
     mutated: int = 0                         # > 0: check this many robots made from the set by DERL's mutation
                                              # operators (one random operator each) instead of the set itself
     num_robots: int = 0                      # > 0: only the set's first num_robots robots
@@ -74,7 +76,7 @@ def check(a: CheckSimConfig) -> None:
     if a.num_robots > 0:
         rs = dataclasses.replace(rs, name=f"{rs.name}[:{a.num_robots}]", robots=tuple(rs.robots[:a.num_robots]))
     if a.task != "ft":
-        return check_hfield(a, rs)
+        return check_task(a, rs)
     tree = build_shared_tree(rs.robots)
     print(f"# {rs.name}: shared tree of {tree.num_slots} bodies (nv {6 + 2 * tree.num_limb_slots}) "
           f"for {len(rs)} robots of at most {max(m.num_nodes for m in rs.robots)} bodies")
@@ -120,17 +122,18 @@ def check(a: CheckSimConfig) -> None:
         raise SystemExit(1)
 
 
-def check_hfield(a: CheckSimConfig, rs) -> None:
-    """The height-field comparison of `task` (the padding's own share is the floor check's: it does not depend on the
+def check_task(a: CheckSimConfig, rs) -> None:
+    """The padded comparison of `task` (the padding's own share is the floor check's: it does not depend on the
     terrain)."""
     opts = SolverOptions(iterations=a.iterations, ls_iterations=a.ls_iterations, self_collision=a.self_collision)
     t0 = time.time()
-    print(f"# comparing {len(rs)} robots on {a.task} with MuJoCo C on the same height-field patches...", flush=True)
-    res = fidelity.compare_hfield(rs.robots, a.task, opts, steps=a.steps, seed=a.seed,
-                                  hfield_contacts=a.hfield_contacts,
-                                  hfield_contacts_per_geom=a.hfield_contacts_per_geom,
-                                  hfield_candidates=a.hfield_candidates,
-                                  contact_budget=a.contact_budget)
+    ground = "the same height-field patches" if a.task in ("csr", "obstacle") else "MetaMorph's slab"
+    print(f"# comparing {len(rs)} robots on {a.task} with MuJoCo C on {ground}...", flush=True)
+    res = fidelity.compare_task(rs.robots, a.task, opts, steps=a.steps, seed=a.seed,
+                                hfield_contacts=a.hfield_contacts,
+                                hfield_contacts_per_geom=a.hfield_contacts_per_geom,
+                                hfield_candidates=a.hfield_candidates,
+                                contact_budget=a.contact_budget)
     rule_detail = (f" ({a.hfield_contacts_per_geom} per geom, {a.hfield_candidates or 'all'} candidate prisms per "
                    "group)" if a.hfield_contacts == "mujoco" else "")
     print(f"# {rs.name} on {a.task}: {len(res)} robots, solver iterations {a.iterations}, line search "

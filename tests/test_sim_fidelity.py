@@ -40,6 +40,38 @@ def test_padded_mjx_matches_mujoco_c_at_default_settings():
         assert 0.0 < r.mjx_ulp < fidelity.TOLERANCE, (r.name, r.mjx_ulp)     # float32's own spread: not nothing
 
 
+def test_incline_matches_mujoco_c_on_metamorphs_slab():
+    """The incline env's padded MJX against the same padded model in MuJoCo C on MetaMorph's slab box, in the
+    env's frame (the torso starts at the origin; in MetaMorph's frame, 72 m away, float32 took 1 of 50 train robots
+    over 1e-3 m and the median to 4.7e-5 m: docs/benchmarks.md, session 13)."""
+    res = fidelity.compare_task(_robots(2), "incline", SolverOptions(), steps=25)
+    assert len(res) == 2
+    for r in res:
+        assert 0.0 < r.mjx < 1e-4, (r.name, r.mjx)
+
+
+@pytest.mark.parametrize("incline", [0.0, 10.0])
+def test_reference_floor_is_the_simulated_surface(incline):
+    """MetaMorph's floor box (`reference_world`, MuJoCo C references) has its top face on the simulated plane, and
+    the robot starts on it at the origin: MuJoCo C puts a point on the plane at distance 0 from the box."""
+    t = terrain.Plane() if not incline else terrain.InclinedPlane(incline_deg=incline)
+    xml = ('<mujoco><worldbody>' + t.world().geoms.replace('name="floor"', 'name="plane"')
+           + t.reference_world().geoms.replace('name="floor"', 'name="box"')
+           + '<body pos="0 0 0"><freejoint/><geom name="ball" type="sphere" size="0.01"/></body></worldbody></mujoco>')
+    mm = mujoco.MjModel.from_xml_string(xml)
+    d = mujoco.MjData(mm)
+    a = np.radians(incline)
+    normal = np.array([-np.sin(a), 0.0, np.cos(a)])         # the plane's normal: euler (0, -a, 0), uphill +x
+    for x, y in [(0.0, 0.0), (1.5, -2.0), (-1.5, 4.0)]:          # on the slab (it ends 2 m behind the start)
+        # MetaMorph's slab top z = 1/cos(a) + tan(a) x, in the env's frame (its origin on the slab at the start)
+        on_plane = np.array([x, y, np.tan(a) * x + 1 / np.cos(a) - 1]) if incline else np.array([x, y, 0.0])
+        d.qpos[:3] = on_plane + 0.01 * normal               # the ball resting on the surface
+        mujoco.mj_forward(mm, d)
+        for geom in ("plane", "box"):
+            dist = mujoco.mj_geomDistance(mm, d, mm.geom(geom).id, mm.geom("ball").id, 1.0, None)
+            assert abs(dist) < 1e-9, (incline, geom, x, y, dist)
+
+
 def test_ulp_nudge_moves_every_entry_one_float32_step():
     x = np.random.default_rng(0).normal(size=1000) * np.logspace(-3, 2, 1000)
     y = fidelity.ulp_nudge(x, np.random.default_rng(1))

@@ -49,10 +49,8 @@ from .terrain import Plane
 
 FLOOR_WORLD = Plane().world()          # ft's world in MJX: a plane, top z = 0 (MetaMorph's z = 1: `origin`)
 FLOOR = FLOOR_WORLD.geoms
-#: MetaMorph's ft floor, a box of half-height 1 centred at z = 0 in its world, in the env's frame
-METAMORPH_FLOOR = (f'    <geom name="floor" type="box" size="100 100 1" pos="0 0 {-FLOOR_WORLD.origin[2]:g}" '
-                   'contype="0" conaffinity="1"/>')
-METAMORPH_WORLD = WorldSpec(geoms=METAMORPH_FLOOR, origin=FLOOR_WORLD.origin)
+METAMORPH_WORLD = Plane().reference_world()     # MetaMorph's ft floor box, in the env's frame
+METAMORPH_FLOOR = METAMORPH_WORLD.geoms
 TOLERANCE = 1e-3
 PERTURBATION = 1e-7     # m / rad: the start-state nudge of the sensitivity column
 
@@ -251,27 +249,29 @@ def compare(robots: Sequence[Morphology], options: SolverOptions = SolverOptions
 
 
 @dataclasses.dataclass
-class HfieldResult:
+class TaskResult:
     name: str
-    mjx: float              # max body-position error (m), padded MJX against padded MuJoCo C on the same patches
+    mjx: float              # max body-position error (m), padded MJX against padded MuJoCo C on MetaMorph's ground
     steps: np.ndarray       # per control step
 
 
-def compare_hfield(robots: Sequence[Morphology], task: str, options: SolverOptions = SolverOptions(),
-                   steps: int = 25, seed: int = 0, **env_options) -> list[HfieldResult]:
-    """The height-field tasks (csr, obstacle): every robot in the env's padded MJX model against the same padded
-    model in MuJoCo C (float64), from the env's own reset state (a generated terrain) under N(0, 0.9) actions. Before
-    each control step both get the height-field patch the env centres under their own torso (`terrain.patch`), so
-    the comparison is MJX's height-field collider (the env's `hfield_contacts` rule, hfield_contact.py), its
-    contact budget and float32 against MuJoCo C's. `env_options`: further EnvConfig options (hfield_contacts,
+def compare_task(robots: Sequence[Morphology], task: str, options: SolverOptions = SolverOptions(),
+                 steps: int = 25, seed: int = 0, **env_options) -> list[TaskResult]:
+    """The tasks beyond ft (incline, csr, obstacle): every robot in the env's padded MJX model against the same padded
+    model in MuJoCo C (float64) on MetaMorph's ground (`Terrain.reference_world`: the incline's slab box, the height
+    fields' patch), from the env's own reset state (a generated terrain) under N(0, 0.9) actions. On csr and
+    obstacle both get, before each control step, the height-field patch the env centres under their own torso
+    (`terrain.patch`), so the comparison is MJX's height-field collider (the env's `hfield_contacts` rule,
+    hfield_contact.py), its contact budget and float32 against MuJoCo C's; on the incline it is the floor rule
+    (contact.py) and float32 against MuJoCo C's box. `env_options`: further EnvConfig options (hfield_contacts,
     hfield_contacts_per_geom, contact_budget). Body positions are compared through MuJoCo C's kinematics of both
     states."""
     from .env import EnvConfig, UnimalEnv
     robots = tuple(robots)
     env = UnimalEnv(robots, EnvConfig(task=task, iterations=options.iterations, ls_iterations=options.ls_iterations,
                                       self_collision=options.self_collision, **env_options))
-    if not env.terrain.uses_hfield:
-        raise ValueError(f"task {task!r} has no height field; compare() checks the floors")
+    if env.task.name == "ft":
+        raise ValueError("compare_task: ft is checked by compare() (each robot alone too)")
     sm, R = env.sm, len(robots)
     rng = np.random.default_rng(seed)
     keys = jax.random.split(jax.random.PRNGKey(seed), R)
@@ -286,11 +286,11 @@ def compare_hfield(robots: Sequence[Morphology], task: str, options: SolverOptio
         return jax.lax.scan(body, state, acts)[1]
     qpos_mjx = np.asarray(jax.jit(jax.vmap(run))(start, jnp.asarray(actions, jnp.float32)), np.float64)
 
-    patch = jax.jit(env.terrain.patch)
+    hfield = env.terrain.uses_hfield
+    patch = jax.jit(env.terrain.patch) if hfield else None
     tab = jax.tree_util.tree_map(np.asarray, sm.tables)
-    hgeom = env._hgeom
     out = []
-    for r, (m, mm) in enumerate(zip(robots, padded_c_models(sm, sm.world))):
+    for r, (m, mm) in enumerate(zip(robots, padded_c_models(sm, env.terrain.reference_world()))):
         ts = jax.tree_util.tree_map(lambda x: x[r], start.episode.terrain)
         d = mujoco.MjData(mm)
         d.qpos[:] = np.asarray(start.physics.qpos[r], np.float64)
@@ -299,9 +299,10 @@ def compare_hfield(robots: Sequence[Morphology], task: str, options: SolverOptio
         bodies = tab.body_of_token[r][:m.num_nodes]
         errs = np.zeros(steps)
         for t in range(steps):
-            data, pos = patch(ts, jnp.float32(d.qpos[0]), jnp.float32(d.qpos[1]))
-            mm.hfield_data[:] = np.asarray(data, np.float64)
-            mm.geom_pos[hgeom] = np.asarray(pos, np.float64)
+            if hfield:
+                data, pos = patch(ts, jnp.float32(d.qpos[0]), jnp.float32(d.qpos[1]))
+                mm.hfield_data[:] = np.asarray(data, np.float64)
+                mm.geom_pos[env._hgeom] = np.asarray(pos, np.float64)
             a = np.clip(actions[r, t], -1, 1)
             d.ctrl[:] = np.concatenate([a, [0.0]])[tab.ctrl_src[r]]
             for _ in range(env.config.substeps):
@@ -311,5 +312,5 @@ def compare_hfield(robots: Sequence[Morphology], task: str, options: SolverOptio
             dk.qpos[:] = qpos_mjx[r, t]
             mujoco.mj_kinematics(mm, dk)
             errs[t] = np.abs(dk.xpos[bodies] - x_c).max()
-        out.append(HfieldResult(m.name, float(errs.max()), errs))
+        out.append(TaskResult(m.name, float(errs.max()), errs))
     return out

@@ -3,6 +3,7 @@
     terr = terrain.for_task(task, robots)      # by `Task.terrain`: Plane, InclinedPlane, CorridorField, ObstacleField
     terr.world()                               # the task's MJCF around the robot (padding.WorldSpec)
     terr.origin                                # MetaMorph's coordinates of the simulation's origin
+    terr.reference_world()                     # MetaMorph's own ground in that frame (MuJoCo C references)
     state = terr.generate(key)                 # the per-episode random terrain (NoTerrain for the planes)
     terr.ground_height(state, x, y)            # ground z under the torso (the torso height of the fall check)
     # height-field kinds only (terr.uses_hfield):
@@ -78,6 +79,11 @@ class Terrain:
         """MetaMorph's coordinates of the simulation's origin (padding.WorldSpec.origin)."""
         return (0.0, 0.0, 0.0)
 
+    def reference_world(self) -> WorldSpec:
+        """`world()` with MetaMorph's own ground geometry (its floor boxes) for MuJoCo C references (fidelity.py);
+        the same world where ours is MetaMorph's."""
+        return self.world()
+
 
 @dataclasses.dataclass(frozen=True)
 class Plane(Terrain):
@@ -91,6 +97,11 @@ class Plane(Terrain):
     def world(self) -> WorldSpec:
         return WorldSpec(geoms='    <geom name="floor" type="plane" size="0 0 1" pos="0 0 0" '
                                'contype="0" conaffinity="1"/>', origin=self.origin)
+
+    def reference_world(self):
+        # MetaMorph's floor: a box of half-height 1 centred at its world's origin
+        return dataclasses.replace(self.world(), geoms=f'    <geom name="floor" type="box" size="100 100 1" '
+                                   f'pos="0 0 {-self.origin[2]!r}" contype="0" conaffinity="1"/>')
 
     def ground_height(self, state, x, y):
         return jnp.float32(0.0)
@@ -120,6 +131,13 @@ class InclinedPlane(Terrain):
         return WorldSpec(geoms=f'    <geom name="floor" type="plane" size="0 0 1" '
                                f'pos="0 0 {float(1 / np.cos(a) - 1)!r}" euler="0 {-float(self.incline_deg)!r} 0" '
                                'contype="0" conaffinity="1"/>', incline_deg=self.incline_deg, origin=self.origin)
+
+    def reference_world(self):
+        # MetaMorph's slab: a 150 m x 40 m x 2 m box centred at its world's origin, tilted about y
+        ox, oy, oz = self.origin
+        return dataclasses.replace(self.world(), geoms=f'    <geom name="floor" type="box" size="75 20 1" '
+                                   f'pos="{-ox!r} {-oy!r} {-oz!r}" euler="0 {-float(self.incline_deg)!r} 0" '
+                                   'contype="0" conaffinity="1"/>')
 
     def ground_height(self, state, x, y):
         # H = 1 + tan(a) (col/10 - 75) over the 1500 slab columns, -10 padding beyond; not clipped at 0
