@@ -17,7 +17,8 @@
 
 Design choices where the original papers and code leave a gap, all overridable by flags:
 - The cell's output REPLACES the embedding as the transformer input (`cell_residual=False`); the spec's
-  design B says the LSTM output "feeds" the transformer.
+  design B says the LSTM output "feeds" the transformer. Adding it to the embedding instead gave R-MoMo no gain
+  (1 seed x 20 M steps on ft against 2 of the default; docs/results.md, "R-MoMo: the cell's output ...").
 - sqrt(D) (EMBEDDING_SCALE) stays on the embedding, i.e. BEFORE the cell (`scale_after_cell=False`): the
   cell is inserted after the embedding step exactly as the feed-forward model computes it. This is the flag's
   default here; runs of rmomo and grumomo get `scale_after_cell=True` from `RECOMMENDED` (measured, below), and runs
