@@ -136,10 +136,10 @@ def check_task(a: CheckSimConfig, rs) -> None:
                                 contact_budget=a.contact_budget)
     rule_detail = (f" ({a.hfield_contacts_per_geom} per geom, {a.hfield_candidates or 'all'} candidate prisms per "
                    "group)" if a.hfield_contacts == "mujoco" else "")
+    hfield = (f", height-field contacts {a.hfield_contacts}{rule_detail}, contact budget {a.contact_budget or 'none'}"
+              if a.task in ("csr", "obstacle") else ", MetaMorph's slab in MuJoCo C")
     print(f"# {rs.name} on {a.task}: {len(res)} robots, solver iterations {a.iterations}, line search "
-          f"{a.ls_iterations}, {a.steps} control steps, height-field contacts {a.hfield_contacts}"
-          f"{rule_detail}, "
-          f"contact budget {a.contact_budget or 'none'} "
+          f"{a.ls_iterations}, {a.steps} control steps{hfield} "
           f"({time.time() - t0:.0f} s); mjx = padded MJX vs padded MuJoCo C (float64), max body-position error (m); "
           "first step over 1e-5 m")
     for r in res:
