@@ -31,6 +31,7 @@ from mjx_morph.sim.env import EnvConfig
 from mjx_morph.sim.model import self_pair_summary
 from mjx_morph.sim.padding import SolverOptions
 from mjx_morph.sim.supertree import build_shared_tree
+from mjx_morph.sim.tasks import get_task
 from mjx_morph.unimal.mutations import mutated_robots
 from mjx_morph.unimal.sets import load_set
 
@@ -127,7 +128,8 @@ def check_task(a: CheckSimConfig, rs) -> None:
     terrain)."""
     opts = SolverOptions(iterations=a.iterations, ls_iterations=a.ls_iterations, self_collision=a.self_collision)
     t0 = time.time()
-    ground = "the same height-field patches" if a.task in ("csr", "obstacle") else "MetaMorph's slab"
+    on_hfield = get_task(a.task).uses_hfield
+    ground = "the same height-field patches" if on_hfield else "MetaMorph's slab"
     print(f"# comparing {len(rs)} robots on {a.task} with MuJoCo C on {ground}...", flush=True)
     res = fidelity.compare_task(rs.robots, a.task, opts, steps=a.steps, seed=a.seed,
                                 hfield_contacts=a.hfield_contacts,
@@ -137,7 +139,7 @@ def check_task(a: CheckSimConfig, rs) -> None:
     rule_detail = (f" ({a.hfield_contacts_per_geom} per geom, {a.hfield_candidates or 'all'} candidate prisms per "
                    "group)" if a.hfield_contacts == "mujoco" else "")
     hfield = (f", height-field contacts {a.hfield_contacts}{rule_detail}, contact budget {a.contact_budget or 'none'}"
-              if a.task in ("csr", "obstacle") else ", MetaMorph's slab in MuJoCo C")
+              if on_hfield else ", MetaMorph's slab in MuJoCo C")
     print(f"# {rs.name} on {a.task}: {len(res)} robots, solver iterations {a.iterations}, line search "
           f"{a.ls_iterations}, {a.steps} control steps{hfield} "
           f"({time.time() - t0:.0f} s); mjx = padded MJX vs padded MuJoCo C (float64), max body-position error (m); "
