@@ -199,7 +199,7 @@ def test_last_iteration_and_evaluated(tmp_path):
 
 
 def test_recommended_model_options_are_filled_and_recorded(tmp_path):
-    """R-MoMo's measured scale_after_cell=True (and R-MeMo's context_mlp=True) is filled in at composition (recorded
+    """R-MoMo's and R-MeMo's measured scale_after_cell=True (and R-MeMo's context_mlp=True) is filled in at composition (recorded
     explicitly in config.yaml) unless the run names the key; a run directory saved with null (the spec's reading)
     refuses the new default with a hint, and resumes with model.scale_after_cell=null."""
     from mjx_morph.run import RunDir, RunDirError
@@ -211,7 +211,8 @@ def test_recommended_model_options_are_filled_and_recorded(tmp_path):
     assert compose_run_config(["arch=modumorph"]).model.scale_after_cell is None      # not an option of modumorph
     assert compose_run_config(["arch=rmemo"]).model.context_mlp is True                # R-MeMo's measured context MLP
     assert compose_run_config(["arch=rmemo", "model.context_mlp=false"]).model.context_mlp is False
-    assert compose_run_config(["arch=rmemo"]).model.scale_after_cell is None          # R-MeMo: not yet measured
+    assert compose_run_config(["arch=rmemo"]).model.scale_after_cell is True          # R-MeMo's measured scale
+    assert compose_run_config(["arch=metamorph"]).model.scale_after_cell is None      # no cell: not an option
     assert to_dict(compose_run_config(["arch=rmomo"]))["model"]["scale_after_cell"] is True
     old = compose_run_config(["arch=rmomo", "model.scale_after_cell=null", f"run_dir={tmp_path}"])
     (tmp_path / "config.yaml").write_text(yaml.safe_dump(to_dict(old), sort_keys=False))
