@@ -5,6 +5,7 @@
     python -m experiments.check_sim gen/train iterations=100 ls_iterations=50 steps=25
     python -m experiments.check_sim unimal100/train mutated=1000    # 1000 mutants of the train robots, one tree
     python -m experiments.check_sim unimal100/train unpadded_mjx=true   # + each robot alone in MJX (~10 s each)
+    python -m experiments.check_sim unimal100/train unpadded_mjx=true x64=true   # both MJX runs in float64
     python -m experiments.check_sim unimal100/train task=csr        # height-field tasks: MJX vs MuJoCo C, same patches
     python -m experiments.check_sim unimal100/train task=incline    # the incline: MJX vs MuJoCo C on MetaMorph's slab
     python -m experiments.check_sim unimal100/train task=csr num_robots=5 hfield_contacts=mjx   # MJX's own collider
@@ -12,8 +13,8 @@
 Prints per robot the worst body-position error (m) over `steps` control steps of the padded MJX robot against the
 robot alone in MuJoCo C on MetaMorph's floor, split into the padding's share (padded vs alone, both MuJoCo C) and
 MJX's (padded MJX vs padded MuJoCo C), with `unpadded_mjx=true` also the padding's share in float32 MJX (padded MJX
-vs the robot alone in MJX), then median / 99th percentile / max of each (see mjx_morph/sim/fidelity.py),
-and exits 1 when any robot is over the tolerance (1e-3 m by default).
+vs the robot alone in MJX; with `x64=true` in float64, where the padding is all that differs), then median / 99th
+percentile / max of each (see mjx_morph/sim/fidelity.py), and exits 1 when any robot is over the tolerance (1e-3 m by default).
 """
 from __future__ import annotations
 
@@ -64,6 +65,8 @@ class CheckSimConfig:
     contact_budget: int = _ENV.contact_budget     # csr / obstacle: the env's cap on contacts per env (0: none)
     unpadded_mjx: bool = False               # also run each robot alone in MJX: the padding's share in float32
                                              # (one compilation per robot, ~10 s each on a CPU)
+    x64: bool = False                        # run MJX in float64 (jax.enable_x64): with unpadded_mjx, padding_mjx is the
+                                             # padding's own error in MJX without float32's rounding
 
 
 register("check_sim_schema", CheckSimConfig)
@@ -89,6 +92,7 @@ def check(a: CheckSimConfig) -> None:
     if a.mujoco_defaults and (100, 50) not in settings:
         settings.append((100, 50))
     bad = 0
+    fl = "float64" if a.x64 else "float32"
     for it, ls in settings:
         opts = SolverOptions(iterations=it, ls_iterations=ls, self_collision=a.self_collision)
         t0 = time.time()
@@ -96,18 +100,18 @@ def check(a: CheckSimConfig) -> None:
               "the stacked model takes a while)...", flush=True)
         res = fidelity.compare(rs.robots, opts, steps=a.steps, seed=a.seed, tree=tree,
                                floor_contacts=a.floor_contacts, matmul_precision=a.matmul_precision,
-                               unpadded_mjx=a.unpadded_mjx)
+                               unpadded_mjx=a.unpadded_mjx, x64=a.x64)
         print(f"# {rs.name}: {len(res)} robots, solver iterations {it}, line search {ls}, "
               f"self-collision {'on' if a.self_collision else 'off'}, floor {a.floor_contacts}, {a.steps} control steps, "
-              f"matmul precision {a.matmul_precision} on {jax.devices()[0].platform} "
+              f"matmul precision {a.matmul_precision}, MJX in {fl} on {jax.devices()[0].platform} "
               f"({time.time() - t0:.0f} s)")
         fields = ["error", "padding", "mjx", "sensitivity"] + (["padding_mjx", "mjx_alone", "mjx_ulp"]
                                                                 if a.unpadded_mjx else [])
         print(" ".join([f"{'robot':40s}"] + [f"{f[:9]:>9s}" for f in fields]) + "   (m; error = padded MJX vs "
               "alone in MuJoCo C, padding = padded vs alone both in MuJoCo C, mjx = padded MJX vs padded MuJoCo C, "
               f"sensitivity = alone vs alone started {fidelity.PERTURBATION:g} away"
-              + (", padding_mjx = padded MJX vs alone in MJX, both float32, mjx_alone = alone in MJX vs alone in MuJoCo C, "
-                 "mjx_ulp = alone in MJX vs itself started one float32 ulp away)" if a.unpadded_mjx else ")"))
+              + (f", padding_mjx = padded MJX vs alone in MJX, both {fl}, mjx_alone = alone in MJX vs alone in MuJoCo C, "
+                 f"mjx_ulp = alone in MJX vs itself started one {fl} ulp away)" if a.unpadded_mjx else ")"))
         for r in res:
             flag = "" if r.error <= a.tolerance else (
                 "   OVER TOLERANCE (as sensitive on its own)" if r.sensitivity >= 0.1 * r.error else "   OVER TOLERANCE")

@@ -40,6 +40,18 @@ def test_padded_mjx_matches_mujoco_c_at_default_settings():
         assert 0.0 < r.mjx_ulp < fidelity.TOLERANCE, (r.name, r.mjx_ulp)     # float32's own spread: not nothing
 
 
+def test_float64_mjx_isolates_the_padding():
+    """With MJX in float64 (`x64=True`) the padded-vs-alone comparison in MJX carries no float32 rounding: one ulp of
+    the start state moves the robot by ~1e-15 m, and the padding's share in MJX is the one MuJoCo C (float64) shows
+    (measured 1.1e-7 against 1.1e-7 m), so issue 12's bound on the padding's own error is checked in MJX itself."""
+    fast = {"xla_backend_optimization_level": 0, "xla_llvm_disable_expensive_passes": True}
+    (r,) = fidelity.compare(_robots(1), SolverOptions(), steps=25, compiler_options=fast, unpadded_mjx=True, x64=True)
+    assert r.mjx_ulp < 1e-12, r.mjx_ulp
+    assert 0.0 < r.padding_mjx < 1e-5, r.padding_mjx
+    assert abs(r.padding_mjx - r.padding) < 0.05 * r.padding, (r.padding_mjx, r.padding)
+    assert jnp.zeros(()).dtype == jnp.float32          # the context ends with the call
+
+
 def test_incline_matches_mujoco_c_on_metamorphs_slab():
     """The incline env's padded MJX against the same padded model in MuJoCo C on MetaMorph's slab box, in the
     env's frame (the torso starts at the origin; in MetaMorph's frame, 72 m away, float32 took 1 of 50 train robots

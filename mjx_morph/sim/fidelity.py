@@ -20,7 +20,10 @@ alone, same float64 engine), `mjx` = padded MJX against padded C (MJX and float3
 part of the difference; in float64 C that rounding is ~1e-16 and `padding` sees the padding alone), `mjx_alone` =
 alone MJX against alone C (MJX and float32 without the padding) and `mjx_ulp` = alone MJX against itself started
 one float32 step (ulp) away in every qpos / qvel entry: float32's own spread for that robot, the size of difference
-two float32 programs that round differently can show with nothing else different. Every simulation runs in the
+two float32 programs that round differently can show with nothing else different. With `x64=True` both MJX
+simulations run in float64 (`jax.enable_x64`): `padding_mjx` is then the padding's own error in MJX, with the two
+programs' rounding at ~1e-16 as in C, and `mjx_alone` / `mjx` what MJX's algorithms differ from MuJoCo C's without
+float32 (the GPU runs float32; this is a check, not a mode of the env). Every simulation runs in the
 env's frame (`padding.WorldSpec.origin`: MetaMorph's world moved down 1 m, floor top at z = 0). These robots
 are chaotic under tiny changes (a tiny difference at a contact onset grows into a different trajectory), so the
 horizon is short (25 control steps = 0.5 s), and `sensitivity` measures each robot's own chaos: the robot alone
@@ -30,6 +33,7 @@ as large as its `error` is an exception explained by that, not by the padding or
 """
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 from typing import Sequence
 
@@ -84,9 +88,9 @@ class Result:
     mjx: float             # padded MJX vs padded MuJoCo C
     sensitivity: float     # alone vs alone with the start state moved by U(-1e-7, 1e-7): the robot's own chaos
     error_by_step: np.ndarray
-    padding_mjx: float = float("nan")   # padded MJX vs alone MJX, both float32 (compare(unpadded_mjx=True))
-    mjx_alone: float = float("nan")     # alone MJX (float32) vs alone MuJoCo C (compare(unpadded_mjx=True))
-    mjx_ulp: float = float("nan")       # alone MJX vs alone MJX started one float32 ulp away (compare(unpadded_mjx=True))
+    padding_mjx: float = float("nan")   # padded MJX vs alone MJX, both float32 (float64: x64) (unpadded_mjx=True)
+    mjx_alone: float = float("nan")     # alone MJX vs alone MuJoCo C (compare(unpadded_mjx=True))
+    mjx_ulp: float = float("nan")       # alone MJX vs alone MJX started one ulp of its float away (unpadded_mjx=True)
 
 
 def padded_c_models(sm, world: WorldSpec = METAMORPH_WORLD) -> list[mujoco.MjModel]:
@@ -128,16 +132,16 @@ def _mjx_rollout(m, d, ctrls, substeps: int) -> jax.Array:
     return jax.lax.scan(control, d, ctrls)[1]
 
 
-def ulp_nudge(x, rng: np.random.Generator) -> np.ndarray:
-    """`x` in float32 with every entry moved one float32 step (ulp) up or down at random."""
-    x = np.asarray(x, np.float32)
-    return np.where(rng.random(x.shape) < 0.5, np.nextafter(x, np.float32(-np.inf)), np.nextafter(x, np.float32(np.inf)))
+def ulp_nudge(x, rng: np.random.Generator, dtype=np.float32) -> np.ndarray:
+    """`x` in `dtype` with every entry moved one step (ulp) of `dtype` up or down at random."""
+    x = np.asarray(x, dtype)
+    return np.where(rng.random(x.shape) < 0.5, np.nextafter(x, dtype(-np.inf)), np.nextafter(x, dtype(np.inf)))
 
 
 def _run_mjx_alone(mm: mujoco.MjModel, starts, ctrls, substeps: int, bodies, floor_contacts: str,
-                   matmul_precision: str, compiler_options: dict | None) -> list[np.ndarray]:
-    """Body positions (steps, len(bodies), 3) of the robot alone in MJX (float32), as `_run_c`, from each (qpos,
-    qvel) of `starts` (one compilation)."""
+                   matmul_precision: str, compiler_options: dict | None, dtype=jnp.float32) -> list[np.ndarray]:
+    """Body positions (steps, len(bodies), 3) of the robot alone in MJX (float32, or `dtype` under
+    `jax.enable_x64`), as `_run_c`, from each (qpos, qvel) of `starts` (one compilation)."""
     mx = mjx.put_model(mm, impl="jax")
     d0 = mjx.make_data(mx, impl="jax")
 
@@ -145,7 +149,7 @@ def _run_mjx_alone(mm: mujoco.MjModel, starts, ctrls, substeps: int, bodies, flo
         return _mjx_rollout(mx, d0.replace(qpos=q, qvel=v), a, substeps)[:, bodies]
 
     def args(q, v):
-        return jnp.asarray(q, jnp.float32), jnp.asarray(v, jnp.float32), jnp.asarray(ctrls, jnp.float32)
+        return jnp.asarray(q, dtype), jnp.asarray(v, dtype), jnp.asarray(ctrls, dtype)
     with contact.floor(floor_contacts), jax.default_matmul_precision(matmul_precision):
         f = jax.jit(run, compiler_options=compiler_options).lower(*args(*starts[0])).compile()
     return [np.asarray(f(*args(q, v)), np.float64) for q, v in starts]
@@ -174,14 +178,21 @@ def summary(values) -> dict:
 def compare(robots: Sequence[Morphology], options: SolverOptions = SolverOptions(), steps: int = 25,
             substeps: int = 4, seed: int = 0, tree: SharedTree | None = None,
             compiler_options: dict | None = None, floor_contacts: str = "box",
-            matmul_precision: str = "highest", unpadded_mjx: bool = False) -> list[Result]:
+            matmul_precision: str = "highest", unpadded_mjx: bool = False, x64: bool = False) -> list[Result]:
     """Compare every robot (see the module docstring). `floor_contacts`: "box" (MetaMorph's box floor in MuJoCo C,
     its rule in MJX) or "plane" (a plane in MuJoCo C, MuJoCo C's plane rule in MJX); `matmul_precision`: MJX's
     (the env's `EnvConfig.matmul_precision`; it matters on GPUs with TF32); `unpadded_mjx`: also run each robot
-    alone in MJX (Result.padding_mjx)."""
-    robots = tuple(robots)
+    alone in MJX (Result.padding_mjx); `x64`: MJX in float64 (the stacked model is built inside, so it is float64
+    too)."""
     if floor_contacts not in ("box", "plane"):
         raise ValueError(f"floor_contacts={floor_contacts!r}: expected 'box' or 'plane'")
+    with jax.enable_x64(True) if x64 else contextlib.nullcontext():
+        return _compare(tuple(robots), options, steps, substeps, seed, tree, compiler_options, floor_contacts,
+                        matmul_precision, unpadded_mjx, jnp.float64 if x64 else jnp.float32)
+
+
+def _compare(robots, options, steps, substeps, seed, tree, compiler_options, floor_contacts, matmul_precision,
+             unpadded_mjx, dtype) -> list[Result]:
     c_floor = METAMORPH_FLOOR if floor_contacts == "box" else FLOOR
     sm = build_stacked_model(robots, FLOOR_WORLD, options, tree=tree)
     R = len(robots)
@@ -216,8 +227,8 @@ def compare(robots: Sequence[Morphology], options: SolverOptions = SolverOptions
         ctrls = jnp.concatenate([jnp.clip(a24, -1, 1), jnp.zeros((a24.shape[0], 1))], axis=1)[:, ctrl_src]
         return _mjx_rollout(sm.model_for(robot), template.replace(qpos=q, qvel=v), ctrls, substeps)
 
-    args = (jnp.arange(R), jnp.asarray(qpos, jnp.float32), jnp.asarray(qvel, jnp.float32),
-            jnp.asarray(act24, jnp.float32), jnp.asarray(tab.ctrl_src))
+    args = (jnp.arange(R), jnp.asarray(qpos, dtype), jnp.asarray(qvel, dtype),
+            jnp.asarray(act24, dtype), jnp.asarray(tab.ctrl_src))
     # the floor rule and the matmul precision are chosen while tracing
     with contact.floor(floor_contacts), jax.default_matmul_precision(matmul_precision):
         f = jax.jit(jax.vmap(run), compiler_options=compiler_options).lower(*args).compile()
@@ -236,9 +247,10 @@ def compare(robots: Sequence[Morphology], options: SolverOptions = SolverOptions
         err = np.abs(x_mjx - x_alone).max(axis=(1, 2))
         padding_mjx = mjx_alone = mjx_ulp = float("nan")
         if unpadded_mjx:
+            ulp = np.dtype(dtype).type
             x_alone_mjx, x_ulp = _run_mjx_alone(
-                alone_mjx_model(m, options), [(q, v), (ulp_nudge(q, rng), ulp_nudge(v, rng))], actions[r],
-                substeps, np.arange(1, 1 + m.num_nodes), floor_contacts, matmul_precision, compiler_options)
+                alone_mjx_model(m, options), [(q, v), (ulp_nudge(q, rng, ulp), ulp_nudge(v, rng, ulp))], actions[r],
+                substeps, np.arange(1, 1 + m.num_nodes), floor_contacts, matmul_precision, compiler_options, dtype)
             padding_mjx = float(np.abs(x_mjx - x_alone_mjx).max())
             mjx_alone = float(np.abs(x_alone_mjx - x_alone).max())
             mjx_ulp = float(np.abs(x_ulp - x_alone_mjx).max())
