@@ -27,8 +27,9 @@ Per-robot work and the gather.
   and 128x the FLOPs, and evaluating x against all R robots' matrices costs R x the FLOPs. The gathered
   intermediate (in x out floats per limb-sample, ~27 KB for the 54 x 128 embedding) is comparable to the
   transformer's own activations. Alternatives measured and rejected (multiply-and-sum, a
-  clipped gather, a one-hot matmul gather) are in docs/benchmarks.md; a sort-by-robot grouped matmul
-  (`jax.lax.ragged_dot`) is the remaining lever if this ever dominates.
+  clipped gather, a one-hot matmul gather) are in docs/benchmarks.md, and so is a sort-by-robot grouped matmul
+  (`jax.lax.ragged_dot`): 30-75x slower with JAX 0.11.2 on an H100, its backward a dense masked product
+  (`experiments.bench_hn_matmul` reruns it).
 - hyperrmomo's hypernetwork input changes every step (context code + recurrent state), so its generated
   matrices are per sample by construction; they are produced by one matmul per layer and consumed at once.
 """
