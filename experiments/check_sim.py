@@ -14,7 +14,8 @@ Prints per robot the worst body-position error (m) over `steps` control steps of
 robot alone in MuJoCo C on MetaMorph's floor, split into the padding's share (padded vs alone, both MuJoCo C) and
 MJX's (padded MJX vs padded MuJoCo C), with `unpadded_mjx=true` also the padding's share in float32 MJX (padded MJX
 vs the robot alone in MJX; with `x64=true` in float64, where the padding is all that differs), then median / 99th
-percentile / max of each (see mjx_morph/sim/fidelity.py), and exits 1 when any robot is over the tolerance (1e-3 m by default).
+percentile / max of each (see mjx_morph/sim/fidelity.py), and exits 1 when any robot is over the tolerance (1e-3 m
+by default).
 """
 from __future__ import annotations
 
@@ -65,8 +66,8 @@ class CheckSimConfig:
     contact_budget: int = _ENV.contact_budget     # csr / obstacle: the env's cap on contacts per env (0: none)
     unpadded_mjx: bool = False               # also run each robot alone in MJX: the padding's share in float32
                                              # (one compilation per robot, ~10 s each on a CPU)
-    x64: bool = False                        # run MJX in float64 (jax.enable_x64): with unpadded_mjx, padding_mjx is the
-                                             # padding's own error in MJX without float32's rounding
+    x64: bool = False                        # run MJX in float64 (jax.enable_x64): with unpadded_mjx, padding_mjx
+                                             # is the padding's own error in MJX without float32's rounding
 
 
 register("check_sim_schema", CheckSimConfig)
@@ -110,7 +111,8 @@ def check(a: CheckSimConfig) -> None:
         print(" ".join([f"{'robot':40s}"] + [f"{f[:9]:>9s}" for f in fields]) + "   (m; error = padded MJX vs "
               "alone in MuJoCo C, padding = padded vs alone both in MuJoCo C, mjx = padded MJX vs padded MuJoCo C, "
               f"sensitivity = alone vs alone started {fidelity.PERTURBATION:g} away"
-              + (f", padding_mjx = padded MJX vs alone in MJX, both {fl}, mjx_alone = alone in MJX vs alone in MuJoCo C, "
+              + (f", padding_mjx = padded MJX vs alone in MJX, both {fl}, "
+                 "mjx_alone = alone in MJX vs alone in MuJoCo C, "
                  f"mjx_ulp = alone in MJX vs itself started one {fl} ulp away)" if a.unpadded_mjx else ")"))
         for r in res:
             flag = "" if r.error <= a.tolerance else (

@@ -199,9 +199,9 @@ def test_last_iteration_and_evaluated(tmp_path):
 
 
 def test_recommended_model_options_are_filled_and_recorded(tmp_path):
-    """R-MoMo's and R-MeMo's measured scale_after_cell=True (and R-MeMo's context_mlp=True) is filled in at composition (recorded
-    explicitly in config.yaml) unless the run names the key; a run directory saved with null (the spec's reading)
-    refuses the new default with a hint, and resumes with model.scale_after_cell=null."""
+    """R-MoMo's and R-MeMo's measured scale_after_cell=True (and R-MeMo's context_mlp=True) is filled in at composition
+    (recorded explicitly in config.yaml) unless the run names the key; a run directory saved with null (the
+    spec's reading) refuses the new default with a hint, and resumes with model.scale_after_cell=null."""
     from mjx_morph.run import RunDir, RunDirError
     from mjx_morph.run.config import FREE, IDENTITY
     assert compose_run_config(["arch=rmomo"]).model.scale_after_cell is True

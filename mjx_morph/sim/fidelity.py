@@ -194,6 +194,7 @@ def compare(robots: Sequence[Morphology], options: SolverOptions = SolverOptions
 def _compare(robots, options, steps, substeps, seed, tree, compiler_options, floor_contacts, matmul_precision,
              unpadded_mjx, dtype) -> list[Result]:
     c_floor = METAMORPH_FLOOR if floor_contacts == "box" else FLOOR
+    np_dtype = np.dtype(dtype).type          # the MJX float, for the ulp nudge
     sm = build_stacked_model(robots, FLOOR_WORLD, options, tree=tree)
     R = len(robots)
     nq, nv = sm.mj_models[0].nq, sm.mj_models[0].nv
@@ -247,10 +248,10 @@ def _compare(robots, options, steps, substeps, seed, tree, compiler_options, flo
         err = np.abs(x_mjx - x_alone).max(axis=(1, 2))
         padding_mjx = mjx_alone = mjx_ulp = float("nan")
         if unpadded_mjx:
-            ulp = np.dtype(dtype).type
             x_alone_mjx, x_ulp = _run_mjx_alone(
-                alone_mjx_model(m, options), [(q, v), (ulp_nudge(q, rng, ulp), ulp_nudge(v, rng, ulp))], actions[r],
-                substeps, np.arange(1, 1 + m.num_nodes), floor_contacts, matmul_precision, compiler_options, dtype)
+                alone_mjx_model(m, options), [(q, v), (ulp_nudge(q, rng, np_dtype), ulp_nudge(v, rng, np_dtype))],
+                actions[r], substeps, np.arange(1, 1 + m.num_nodes), floor_contacts, matmul_precision,
+                compiler_options, dtype)
             padding_mjx = float(np.abs(x_mjx - x_alone_mjx).max())
             mjx_alone = float(np.abs(x_alone_mjx - x_alone).max())
             mjx_ulp = float(np.abs(x_ulp - x_alone_mjx).max())
