@@ -1,8 +1,19 @@
-"""Bring finished runs home: the small artefacts of run directories, without checkpoints, TensorBoard or videos.
+"""Bring runs home: the small artefacts of run directories, without checkpoints, TensorBoard or videos; or, with
+`checkpoint=true`, everything an unfinished run needs to go on training on another machine.
 
     python -m experiments.collect runs=[runs/studies/ab_rmomo_cell] out=$OUT/ab_rmomo_cell.tar.gz   # GPU machine
     tar xzf ab_rmomo_cell.tar.gz -C results/                   # here: results/ab_rmomo_cell/<run dir>/...
     python -m experiments.collect runs=[runs/studies/ab_rmomo_cell] out=results/ab_rmomo_cell        # a folder
+
+Moving an unfinished run (machines lent for 30 minutes, files that travel limited to 16 MiB each):
+
+    python -m experiments.collect runs=[runs/studies/ab_precision] out=runs/moving/ab_precision.tar.gz \
+        checkpoint=true part_mb=15        # ab_precision.tar.gz.000, .001, ...: each part at most 15 MiB
+    cat ab_precision.tar.gz.* | tar xzf - -C runs/studies      # on the next machine, then rerun the study: it resumes
+
+`checkpoint=true` adds each run directory's newest checkpoint (the whole train state: parameters, optimiser,
+environments, recurrent state; an R-MoMo seed of the default geometry is ~174 MB before compression) and its
+TensorBoard events; older checkpoints stay behind. The resumed run continues exactly as if never moved.
 
 Of each run directory found under `runs` (as experiments.report finds them), ARTEFACTS are kept: the resolved config,
 its history, the devices of each invocation (devices.yaml), metrics.csv and eval/*.json (figures are rebuilt by
@@ -14,11 +25,12 @@ directly keeps its own name. `out` ending in .tar.gz writes an archive, else a f
 from __future__ import annotations
 
 import dataclasses
+import io
 import shutil
 import sys
 import tarfile
 from pathlib import Path
-from typing import Any
+from typing import Any, Optional
 
 from omegaconf import MISSING
 
@@ -35,44 +47,103 @@ ARTEFACTS = ("config.yaml", "config_history.yaml", "devices.yaml", "metrics.csv"
 class CollectConfig:
     runs: Any = MISSING          # run directories or folders holding run directories
     out: str = MISSING           # <name>.tar.gz (an archive) or a folder
-    max_file_mb: float = 2.0     # larger files are left out (and named)
+    max_file_mb: float = 2.0     # larger artefacts are left out (and named); checkpoints are never left out
+    checkpoint: bool = False     # also the newest checkpoint and TensorBoard events: to resume the runs elsewhere
+    part_mb: Optional[float] = None   # an archive cut into parts of at most this many MiB (<out>.000, .001, ...)
 
 
 register("collect_schema", CollectConfig)
 
 
-def artefacts(roots: list[str]) -> list[tuple[Path, str]]:
-    """[(file, its name in the output)] of every run directory under `roots`."""
+def newest_checkpoint(run_dir: Path) -> list[Path]:
+    """The files of a run directory's newest checkpoint (checkpoints/<iteration>/...; [] if it has none)."""
+    steps = [p for p in (run_dir / "checkpoints").glob("*") if p.is_dir() and p.name.isdigit()]
+    if not steps:
+        return []
+    newest = max(steps, key=lambda p: int(p.name))
+    return sorted(f for f in newest.rglob("*") if f.is_file())
+
+
+def artefacts(roots: list[str], checkpoint: bool = False) -> list[tuple[Path, str]]:
+    """[(file, its name in the output)] of every run directory under `roots` (with `checkpoint`: its newest
+    checkpoint and TensorBoard events too)."""
     kept = []
     for root in roots:
         root = Path(root)
         for d in find_run_dirs([root]):
             base = Path(root.name) / d.relative_to(root) if d != root else Path(d.name)
-            for pattern in ARTEFACTS:
-                for f in sorted(d.glob(pattern)):
-                    kept.append((f, str(base / f.relative_to(d))))
+            files = [f for pattern in ARTEFACTS for f in sorted(d.glob(pattern))]
+            if checkpoint:
+                files += newest_checkpoint(d) + sorted(f for f in (d / "tb").glob("*") if f.is_file())
+            kept += [(f, str(base / f.relative_to(d))) for f in files]
     return kept
+
+
+class Parts(io.RawIOBase):
+    """A write-only stream cut into files of at most `size` bytes: <base>.000, <base>.001, ... (`cat` joins them)."""
+
+    def __init__(self, base: Path, size: int):
+        super().__init__()
+        if size < 1:
+            raise ValueError(f"part_mb: expected a positive size, got {size} bytes")
+        self.base, self.size, self.paths = base, size, []
+        self._f, self._left = None, 0
+
+    def writable(self) -> bool:
+        return True
+
+    def write(self, b) -> int:
+        data = memoryview(b).cast("B")
+        n = 0
+        while n < len(data):
+            if self._left == 0:
+                if self._f is not None:
+                    self._f.close()
+                self.paths.append(self.base.with_name(f"{self.base.name}.{len(self.paths):03d}"))
+                self._f, self._left = self.paths[-1].open("wb"), self.size
+            k = min(self._left, len(data) - n)
+            self._f.write(data[n:n + k])
+            n, self._left = n + k, self._left - k
+        return n
+
+    def close(self) -> None:
+        if self._f is not None:
+            self._f.close()
+            self._f = None
+        super().close()
 
 
 def collect(c: CollectConfig) -> None:
     roots = [str(r) for r in (c.runs if isinstance(c.runs, (list, tuple)) else [c.runs])]
-    files = artefacts(roots)
+    archive = c.out.endswith((".tar.gz", ".tgz"))
+    if c.part_mb is not None and not archive:
+        raise ValueError(f"part_mb={c.part_mb}: parts are cut from an archive; expected out=<name>.tar.gz, "
+                         f"got out={c.out}")
+    files = artefacts(roots, c.checkpoint)
     limit = int(c.max_file_mb * 2 ** 20)
-    left_out = [f"{f} ({f.stat().st_size / 2 ** 20:.2f} MB)" for f, _ in files if f.stat().st_size > limit]
-    files = [(f, name) for f, name in files if f.stat().st_size <= limit]
+    small = lambda f: f.stat().st_size <= limit or "checkpoints" in f.parts or f.parent.name == "tb"
+    left_out = [f"{f} ({f.stat().st_size / 2 ** 20:.2f} MB)" for f, _ in files if not small(f)]
+    files = [(f, name) for f, name in files if small(f)]
     out = Path(c.out)
-    if c.out.endswith((".tar.gz", ".tgz")):
+    if archive:
         out.parent.mkdir(parents=True, exist_ok=True)
-        with tarfile.open(out, "w:gz") as tar:
+        stream = Parts(out, int(c.part_mb * 2 ** 20)) if c.part_mb is not None else out.open("wb")
+        with stream, tarfile.open(fileobj=stream, mode="w|gz") as tar:
             for f, name in files:
                 tar.add(f, arcname=name)
+        if c.part_mb is not None:
+            print(f"[mjx_morph] {len(stream.paths)} parts of at most {c.part_mb} MiB: {stream.paths[0].name} ... "
+                  f"{stream.paths[-1].name}; join them with: cat {out.name}.* | tar xzf - -C <folder>")
     else:
         for f, name in files:
             (out / name).parent.mkdir(parents=True, exist_ok=True)
             shutil.copy2(f, out / name)
-    runs = len({f.parent.parent if f.parent.name == "eval" else f.parent for f, _ in files})
+    runs = sum(len(find_run_dirs([Path(r)])) for r in roots)
     size = sum(f.stat().st_size for f, _ in files)
-    print(f"[mjx_morph] {len(files)} files of {runs} run directories ({size / 2 ** 20:.2f} MB) -> {out}")
+    written = sum(p.stat().st_size for p in stream.paths) if c.part_mb is not None else \
+        out.stat().st_size if archive else size
+    print(f"[mjx_morph] {len(files)} files of {runs} run directories ({size / 2 ** 20:.2f} MB, "
+          f"{written / 2 ** 20:.2f} MB written) -> {out}")
     for f in left_out:
         print(f"[mjx_morph] left out, over max_file_mb={c.max_file_mb}: {f}", file=sys.stderr)
 

@@ -74,6 +74,41 @@ def test_interrupted_and_resumed_run_ends_like_uninterrupted(full_run, exp, tmp_
     assert {e["device_kind"] for e in invocations} == {jax.devices()[0].device_kind}
 
 
+def test_run_moved_in_parts_resumes_like_uninterrupted(full_run, exp, tmp_path):
+    """experiments.collect checkpoint=true part_mb=...: an unfinished run leaves its machine as parts of at most
+    part_mb MiB (the newest checkpoint only), is joined elsewhere with cat | tar, and resumes there exactly."""
+    import subprocess
+    import tarfile
+    from experiments import collect
+    d_full, cfg = full_run
+    study = tmp_path / "here" / "study"
+    train(config(f"run_dir={study / 'moving'}", "stop_after=1", "checkpoint_every=1"), exp)
+    train(config(f"run_dir={study / 'moving'}", "stop_after=1", "checkpoint_every=1"), exp)
+    assert RunDir(study / "moving").steps() == [1, 2]
+    out = tmp_path / "out" / "moving.tar.gz"
+    assert collect.main([f"runs=[{study}]", f"out={out}", "checkpoint=true", "part_mb=0.05"]) == 0
+    parts = sorted(out.parent.iterdir())
+    assert len(parts) > 2 and [p.name for p in parts] == [f"moving.tar.gz.{i:03d}" for i in range(len(parts))]
+    assert all(p.stat().st_size <= 0.05 * 2 ** 20 for p in parts)
+    there = tmp_path / "there"
+    there.mkdir()
+    subprocess.run(f"cat {out}.* | tar xzf - -C {there}", shell=True, check=True)
+    moved = there / "study" / "moving"
+    assert RunDir(moved).steps() == [2]                         # the newest checkpoint alone
+    assert (moved / "metrics.csv").read_bytes() == (study / "moving" / "metrics.csv").read_bytes()
+    assert any((moved / "tb").iterdir())
+    train(config(f"run_dir={moved}"), exp)
+    for x, y in zip(jax.tree.leaves(params_of(d_full, exp.trainer)), jax.tree.leaves(params_of(moved, exp.trainer))):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+    assert [int(r["iteration"]) for r in RunDir(moved).read_metrics()] == [1, 2, 3]
+    # without checkpoint=true nothing of the checkpoint travels; parts need an archive
+    assert collect.main([f"runs=[{study}]", f"out={tmp_path / 'small.tar.gz'}"]) == 0
+    with tarfile.open(tmp_path / "small.tar.gz") as tar:
+        assert not any("checkpoints" in n or "/tb/" in n for n in tar.getnames())
+    with pytest.raises(ValueError, match="part_mb=1.0: parts are cut from an archive"):
+        collect.collect(collect.CollectConfig(runs=[str(study)], out=str(tmp_path / "folder"), part_mb=1.0))
+
+
 def test_stop_at_ends_the_run_for_good(exp, tmp_path):
     """stop_at=N ends the run at iteration N of its schedule; rerunning it trains no further (unlike stop_after)."""
     d = tmp_path / "stop_at"
