@@ -64,18 +64,19 @@ def newest_checkpoint(run_dir: Path) -> list[Path]:
     return sorted(f for f in newest.rglob("*") if f.is_file())
 
 
-def artefacts(roots: list[str], checkpoint: bool = False) -> list[tuple[Path, str]]:
-    """[(file, its name in the output)] of every run directory under `roots` (with `checkpoint`: its newest
-    checkpoint and TensorBoard events too)."""
+def artefacts(roots: list[str], checkpoint: bool = False) -> list[tuple[Path, str, bool]]:
+    """[(file, its name in the output, whether it is an artefact)] of every run directory under `roots` (with
+    `checkpoint`: its newest checkpoint and TensorBoard events too, which are not artefacts)."""
     kept = []
     for root in roots:
         root = Path(root)
         for d in find_run_dirs([root]):
             base = Path(root.name) / d.relative_to(root) if d != root else Path(d.name)
-            files = [f for pattern in ARTEFACTS for f in sorted(d.glob(pattern))]
+            files = [(f, True) for pattern in ARTEFACTS for f in sorted(d.glob(pattern))]
             if checkpoint:
-                files += newest_checkpoint(d) + sorted(f for f in (d / "tb").glob("*") if f.is_file())
-            kept += [(f, str(base / f.relative_to(d))) for f in files]
+                state = newest_checkpoint(d) + sorted(f for f in (d / "tb").glob("*") if f.is_file())
+                files += [(f, False) for f in state]
+            kept += [(f, str(base / f.relative_to(d)), artefact) for f, artefact in files]
     return kept
 
 
@@ -119,11 +120,13 @@ def collect(c: CollectConfig) -> None:
     if c.part_mb is not None and not archive:
         raise ValueError(f"part_mb={c.part_mb}: parts are cut from an archive; expected out=<name>.tar.gz, "
                          f"got out={c.out}")
-    files = artefacts(roots, c.checkpoint)
     limit = int(c.max_file_mb * 2 ** 20)
-    small = lambda f: f.stat().st_size <= limit or "checkpoints" in f.parts or f.parent.name == "tb"
-    left_out = [f"{f} ({f.stat().st_size / 2 ** 20:.2f} MB)" for f, _ in files if not small(f)]
-    files = [(f, name) for f, name in files if small(f)]
+    files, left_out = [], []
+    for f, name, artefact in artefacts(roots, c.checkpoint):
+        if artefact and f.stat().st_size > limit:
+            left_out.append(f"{f} ({f.stat().st_size / 2 ** 20:.2f} MB)")
+        else:
+            files.append((f, name))
     out = Path(c.out)
     if archive:
         out.parent.mkdir(parents=True, exist_ok=True)

@@ -86,7 +86,10 @@ def test_run_moved_in_parts_resumes_like_uninterrupted(full_run, exp, tmp_path):
     train(config(f"run_dir={study / 'moving'}", "stop_after=1", "checkpoint_every=1"), exp)
     assert RunDir(study / "moving").steps() == [1, 2]
     out = tmp_path / "out" / "moving.tar.gz"
-    assert collect.main([f"runs=[{study}]", f"out={out}", "checkpoint=true", "part_mb=0.05"]) == 0
+    big = max(f.stat().st_size for f in (study / "moving" / "checkpoints").rglob("*") if f.is_file())
+    assert big > 10 * 2 ** 10      # over max_file_mb below: checkpoint files are never left out
+    assert collect.main([f"runs=[{study}]", f"out={out}", "checkpoint=true", "part_mb=0.05",
+                         "max_file_mb=0.01"]) == 0
     parts = sorted(out.parent.iterdir())
     assert len(parts) > 2 and [p.name for p in parts] == [f"moving.tar.gz.{i:03d}" for i in range(len(parts))]
     assert all(p.stat().st_size <= 0.05 * 2 ** 20 for p in parts)
