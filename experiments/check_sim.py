@@ -6,6 +6,8 @@
     python -m experiments.check_sim unimal100/train mutated=1000    # 1000 mutants of the train robots, one tree
     python -m experiments.check_sim unimal100/train unpadded_mjx=true   # + each robot alone in MJX (~10 s each)
     python -m experiments.check_sim unimal100/train unpadded_mjx=true x64=true   # both MJX runs in float64
+    python -m experiments.check_sim unimal100/train mutated=1000 unpadded_mjx=true unpadded_range=0:100 \
+        csv=mutants_0-100.csv     # robots 0-99 alone in MJX (a slice of a long check), per-robot rows to a CSV
     python -m experiments.check_sim unimal100/train task=csr        # height-field tasks: MJX vs MuJoCo C, same patches
     python -m experiments.check_sim unimal100/train task=incline    # the incline: MJX vs MuJoCo C on MetaMorph's slab
     python -m experiments.check_sim unimal100/train task=csr num_robots=5 hfield_contacts=mjx   # MJX's own collider
@@ -19,6 +21,7 @@ by default).
 """
 from __future__ import annotations
 
+import csv
 import dataclasses
 import sys
 import time
@@ -68,9 +71,25 @@ class CheckSimConfig:
                                              # (one compilation per robot, ~10 s each on a CPU)
     x64: bool = False                        # run MJX in float64 (jax.enable_x64): with unpadded_mjx, padding_mjx
                                              # is the padding's own error in MJX without float32's rounding
+    unpadded_range: str = ""                 # "lo:hi": with unpadded_mjx, only robots lo..hi-1 alone in MJX (the
+                                             # rest print nan), each as in a run over all robots: slices add up
+    csv: str = ""                            # also write one row per robot (every printed column) to this CSV file
 
 
 register("check_sim_schema", CheckSimConfig)
+
+
+def _range(text: str, n: int) -> range | None:
+    """`unpadded_range` "lo:hi" as a range of robot indices (None: all)."""
+    if not text:
+        return None
+    try:
+        lo, hi = (int(x) for x in text.split(":"))
+    except ValueError:
+        raise ValueError(f"unpadded_range={text!r}: expected lo:hi, two robot indices") from None
+    if not 0 <= lo < hi <= n:
+        raise ValueError(f"unpadded_range={text!r}: expected 0 <= lo < hi <= {n}, the number of robots")
+    return range(lo, hi)
 
 
 def check(a: CheckSimConfig) -> None:
@@ -82,6 +101,9 @@ def check(a: CheckSimConfig) -> None:
         rs = dataclasses.replace(rs, name=f"{rs.name}[:{a.num_robots}]", robots=tuple(rs.robots[:a.num_robots]))
     if a.task != "ft":
         return check_task(a, rs)
+    alone = _range(a.unpadded_range, len(rs))
+    if alone is not None and not a.unpadded_mjx:
+        raise ValueError(f"unpadded_range={a.unpadded_range!r} needs unpadded_mjx=true")
     tree = build_shared_tree(rs.robots)
     print(f"# {rs.name}: shared tree of {tree.num_slots} bodies (nv {6 + 2 * tree.num_limb_slots}) "
           f"for {len(rs)} robots of at most {max(m.num_nodes for m in rs.robots)} bodies")
@@ -93,6 +115,7 @@ def check(a: CheckSimConfig) -> None:
     if a.mujoco_defaults and (100, 50) not in settings:
         settings.append((100, 50))
     bad = 0
+    rows = []
     fl = "float64" if a.x64 else "float32"
     for it, ls in settings:
         opts = SolverOptions(iterations=it, ls_iterations=ls, self_collision=a.self_collision)
@@ -101,7 +124,7 @@ def check(a: CheckSimConfig) -> None:
               "the stacked model takes a while)...", flush=True)
         res = fidelity.compare(rs.robots, opts, steps=a.steps, seed=a.seed, tree=tree,
                                floor_contacts=a.floor_contacts, matmul_precision=a.matmul_precision,
-                               unpadded_mjx=a.unpadded_mjx, x64=a.x64)
+                               unpadded_mjx=a.unpadded_mjx, x64=a.x64, alone=alone)
         print(f"# {rs.name}: {len(res)} robots, solver iterations {it}, line search {ls}, "
               f"self-collision {'on' if a.self_collision else 'off'}, floor {a.floor_contacts}, {a.steps} control steps, "
               f"matmul precision {a.matmul_precision}, MJX in {fl} on {jax.devices()[0].platform} "
@@ -118,6 +141,7 @@ def check(a: CheckSimConfig) -> None:
             flag = "" if r.error <= a.tolerance else (
                 "   OVER TOLERANCE (as sensitive on its own)" if r.sensitivity >= 0.1 * r.error else "   OVER TOLERANCE")
             print(" ".join([f"{r.name:40s}"] + [f"{getattr(r, f):9.2e}" for f in fields]) + flag)
+        rows += [[r.name, it, ls, *(f"{getattr(r, f):.3e}" for f in fields)] for r in res]
         for field in fields:
             s = fidelity.summary([getattr(r, field) for r in res])
             print(f"# {field:8s} median {s['median']:.2e}  p99 {s['p99']:.2e}  max {s['max']:.2e} m")
@@ -125,6 +149,10 @@ def check(a: CheckSimConfig) -> None:
         over = [r for r in res if r.error > a.tolerance]
         print(f"# worst {worst.error:.2e} m ({worst.name}); {len(over)} of {len(res)} over {a.tolerance:g} m")
         bad += len(over)
+    if a.csv:
+        with open(a.csv, "w", newline="") as fh:
+            csv.writer(fh).writerows([["robot", "iterations", "ls_iterations", *fields], *rows])
+        print(f"# per-robot rows written to {a.csv}")
     if bad:
         raise SystemExit(1)
 

@@ -38,6 +38,14 @@ def test_padded_mjx_matches_mujoco_c_at_default_settings():
         assert 0.0 < r.padding_mjx < 1e-5, (r.name, r.padding_mjx)
         assert 0.0 < r.mjx_alone < fidelity.TOLERANCE, (r.name, r.mjx_alone)
         assert 0.0 < r.mjx_ulp < fidelity.TOLERANCE, (r.name, r.mjx_ulp)     # float32's own spread: not nothing
+    # a slice of the robots alone in MJX: the others are not run (NaN, left out of summaries), the slice's robot gets
+    # exactly its values of the whole run (same start, actions and nudges), so slices of a long check add up
+    sliced = fidelity.compare(_robots(2), SolverOptions(), steps=25, compiler_options=fast, unpadded_mjx=True,
+                              alone=range(1, 2))
+    assert np.isnan([sliced[0].padding_mjx, sliced[0].mjx_alone, sliced[0].mjx_ulp]).all()
+    for f in ("error", "padding", "padding_mjx", "mjx_alone", "mjx_ulp"):
+        assert getattr(sliced[1], f) == getattr(res[1], f), f
+    assert fidelity.summary([r.padding_mjx for r in sliced])["max"] == res[1].padding_mjx
 
 
 def test_float64_mjx_isolates_the_padding():
@@ -212,3 +220,21 @@ def test_height_field_patch_is_the_observed_terrain(kind):
             dist = mujoco.mj_ray(mm, d, np.array([x, y, 20.0]), np.array([0, 0, -1.0]), None, 1, -1, geomid)
             want = float(terr.physical_height(ts, np.int32(c), np.int32(r)))
             assert abs((20.0 - dist) - want) < 1e-4, (kind, x, y, 20.0 - dist, want)
+
+
+def test_check_sim_slices_the_alone_runs_and_writes_csv(tmp_path, capsys):
+    """`check_sim ... unpadded_range=lo:hi csv=F`: only robots lo..hi-1 run alone in MJX (the others print nan), one
+    CSV row per robot; a malformed or out-of-range slice, or a slice without unpadded_mjx, is a clear error."""
+    import csv
+    from experiments import check_sim
+    out = tmp_path / "rows.csv"
+    args = ["gen/train", "num_robots=2", "steps=5", "unpadded_mjx=true"]
+    assert check_sim.main([*args, "unpadded_range=1:2", f"csv={out}"]) == 0
+    rows = list(csv.DictReader(out.open()))
+    assert len(rows) == 2 and rows[0]["padding_mjx"] == "nan" and float(rows[1]["padding_mjx"]) < 1e-3
+    assert all(float(r["error"]) < fidelity.TOLERANCE for r in rows)
+    for bad, msg in (("2:1", "expected 0 <= lo < hi <= 2"), ("1-2", "expected lo:hi")):
+        assert check_sim.main([*args, f"unpadded_range={bad}"]) == 2
+        assert msg in capsys.readouterr().err
+    assert check_sim.main(["gen/train", "num_robots=2", "unpadded_range=0:1"]) == 2
+    assert "needs unpadded_mjx=true" in capsys.readouterr().err

@@ -170,29 +170,36 @@ def _run_c(mm: mujoco.MjModel, qpos, qvel, ctrls, substeps: int, bodies) -> np.n
 
 
 def summary(values) -> dict:
-    """median, 99th percentile and max of a list of errors (m)."""
+    """median, 99th percentile and max of a list of errors (m); NaNs (robots not measured) are left out."""
     v = np.asarray(values, np.float64)
+    v = v[~np.isnan(v)]
+    if not v.size:
+        return {"median": float("nan"), "p99": float("nan"), "max": float("nan")}
     return {"median": float(np.median(v)), "p99": float(np.percentile(v, 99)), "max": float(v.max())}
 
 
 def compare(robots: Sequence[Morphology], options: SolverOptions = SolverOptions(), steps: int = 25,
             substeps: int = 4, seed: int = 0, tree: SharedTree | None = None,
             compiler_options: dict | None = None, floor_contacts: str = "box",
-            matmul_precision: str = "highest", unpadded_mjx: bool = False, x64: bool = False) -> list[Result]:
+            matmul_precision: str = "highest", unpadded_mjx: bool = False, x64: bool = False,
+            alone: range | None = None) -> list[Result]:
     """Compare every robot (see the module docstring). `floor_contacts`: "box" (MetaMorph's box floor in MuJoCo C,
     its rule in MJX) or "plane" (a plane in MuJoCo C, MuJoCo C's plane rule in MJX); `matmul_precision`: MJX's
     (the env's `EnvConfig.matmul_precision`; it matters on GPUs with TF32); `unpadded_mjx`: also run each robot
     alone in MJX (Result.padding_mjx); `x64`: MJX in float64 (the stacked model is built inside, so it is float64
-    too)."""
+    too); `alone`: with unpadded_mjx, only the robots of these indices run alone in MJX (one compilation each; the
+    others' MJX-alone fields are NaN), each with exactly the start, actions and nudges of a run over all robots, so
+    a large set can be checked in slices."""
     if floor_contacts not in ("box", "plane"):
         raise ValueError(f"floor_contacts={floor_contacts!r}: expected 'box' or 'plane'")
     with jax.enable_x64(True) if x64 else contextlib.nullcontext():
         return _compare(tuple(robots), options, steps, substeps, seed, tree, compiler_options, floor_contacts,
-                        matmul_precision, unpadded_mjx, jnp.float64 if x64 else jnp.float32)
+                        matmul_precision, unpadded_mjx, jnp.float64 if x64 else jnp.float32,
+                        range(len(robots)) if alone is None else alone)
 
 
 def _compare(robots, options, steps, substeps, seed, tree, compiler_options, floor_contacts, matmul_precision,
-             unpadded_mjx, dtype) -> list[Result]:
+             unpadded_mjx, dtype, alone_robots) -> list[Result]:
     c_floor = METAMORPH_FLOOR if floor_contacts == "box" else FLOOR
     np_dtype = np.dtype(dtype).type          # the MJX float, for the ulp nudge
     sm = build_stacked_model(robots, FLOOR_WORLD, options, tree=tree)
@@ -248,10 +255,11 @@ def _compare(robots, options, steps, substeps, seed, tree, compiler_options, flo
         err = np.abs(x_mjx - x_alone).max(axis=(1, 2))
         padding_mjx = mjx_alone = mjx_ulp = float("nan")
         if unpadded_mjx:
+            ulp = (ulp_nudge(q, rng, np_dtype), ulp_nudge(v, rng, np_dtype))   # drawn for every robot: same stream
+        if unpadded_mjx and r in alone_robots:
             x_alone_mjx, x_ulp = _run_mjx_alone(
-                alone_mjx_model(m, options), [(q, v), (ulp_nudge(q, rng, np_dtype), ulp_nudge(v, rng, np_dtype))],
-                actions[r], substeps, np.arange(1, 1 + m.num_nodes), floor_contacts, matmul_precision,
-                compiler_options, dtype)
+                alone_mjx_model(m, options), [(q, v), ulp], actions[r], substeps, np.arange(1, 1 + m.num_nodes),
+                floor_contacts, matmul_precision, compiler_options, dtype)
             padding_mjx = float(np.abs(x_mjx - x_alone_mjx).max())
             mjx_alone = float(np.abs(x_alone_mjx - x_alone).max())
             mjx_ulp = float(np.abs(x_ulp - x_alone_mjx).max())
