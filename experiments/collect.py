@@ -12,8 +12,8 @@ Moving an unfinished run (machines lent for 30 minutes, files that travel limite
     cat ab_precision.tar.gz.* | tar xzf - -C runs/studies      # on the next machine, then rerun the study: it resumes
 
 `checkpoint=true` adds each run directory's newest checkpoint (the whole train state: parameters, optimiser,
-environments, recurrent state; an R-MoMo seed of the default geometry is ~174 MB before compression) and its
-TensorBoard events; older checkpoints stay behind. The resumed run continues exactly as if never moved.
+environments, recurrent state; an R-MoMo seed of the default geometry is 174 MB in memory, 106 MB as Orbax writes
+it, and gzip gains nothing on it: 8 parts of 15 MiB) and its TensorBoard events; older checkpoints stay behind. The resumed run continues exactly as if never moved.
 
 Of each run directory found under `runs` (as experiments.report finds them), ARTEFACTS are kept: the resolved config,
 its history, the devices of each invocation (devices.yaml), metrics.csv and eval/*.json (figures are rebuilt by
