@@ -13,7 +13,8 @@ Moving an unfinished run (machines lent for 30 minutes, files that travel limite
 
 `checkpoint=true` adds each run directory's newest checkpoint (the whole train state: parameters, optimiser,
 environments, recurrent state; an R-MoMo seed of the default geometry is 174 MB in memory, 106 MB as Orbax writes
-it, and gzip gains nothing on it: 8 parts of 15 MiB) and its TensorBoard events; older checkpoints stay behind. The resumed run continues exactly as if never moved.
+it, and gzip gains nothing on it: 8 parts of 15 MiB) and its TensorBoard events; older checkpoints stay behind.
+The resumed run continues exactly as if never moved.
 
 Of each run directory found under `runs` (as experiments.report finds them), ARTEFACTS are kept: the resolved config,
 its history, the devices of each invocation (devices.yaml), metrics.csv and eval/*.json (figures are rebuilt by
@@ -121,8 +122,9 @@ def collect(c: CollectConfig) -> None:
         raise ValueError(f"part_mb={c.part_mb}: parts are cut from an archive; expected out=<name>.tar.gz, "
                          f"got out={c.out}")
     limit = int(c.max_file_mb * 2 ** 20)
+    found = artefacts(roots, c.checkpoint)
     files, left_out = [], []
-    for f, name, artefact in artefacts(roots, c.checkpoint):
+    for f, name, artefact in found:
         if artefact and f.stat().st_size > limit:
             left_out.append(f"{f} ({f.stat().st_size / 2 ** 20:.2f} MB)")
         else:
@@ -134,17 +136,18 @@ def collect(c: CollectConfig) -> None:
         with stream, tarfile.open(fileobj=stream, mode="w|gz") as tar:
             for f, name in files:
                 tar.add(f, arcname=name)
+        written = stream.paths if c.part_mb is not None else [out]
         if c.part_mb is not None:
-            print(f"[mjx_morph] {len(stream.paths)} parts of at most {c.part_mb} MiB: {stream.paths[0].name} ... "
-                  f"{stream.paths[-1].name}; join them with: cat {out.name}.* | tar xzf - -C <folder>")
+            print(f"[mjx_morph] {len(written)} parts of at most {c.part_mb} MiB: {written[0].name} ... "
+                  f"{written[-1].name}; join them with: cat {out.name}.* | tar xzf - -C <folder>")
     else:
         for f, name in files:
             (out / name).parent.mkdir(parents=True, exist_ok=True)
             shutil.copy2(f, out / name)
-    runs = sum(len(find_run_dirs([Path(r)])) for r in roots)
+        written = [out / name for _, name in files]
+    runs = sum(1 for f, _, artefact in found if artefact and f.name == "config.yaml")   # one per run directory
     size = sum(f.stat().st_size for f, _ in files)
-    written = sum(p.stat().st_size for p in stream.paths) if c.part_mb is not None else \
-        out.stat().st_size if archive else size
+    written = sum(p.stat().st_size for p in written)
     print(f"[mjx_morph] {len(files)} files of {runs} run directories ({size / 2 ** 20:.2f} MB, "
           f"{written / 2 ** 20:.2f} MB written) -> {out}")
     for f in left_out:
