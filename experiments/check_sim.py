@@ -8,6 +8,7 @@
     python -m experiments.check_sim unimal100/train unpadded_mjx=true x64=true   # both MJX runs in float64
     python -m experiments.check_sim unimal100/train mutated=1000 unpadded_mjx=true unpadded_range=0:100 \
         csv=mutants_0-100.csv     # robots 0-99 alone in MJX (a slice of a long check), per-robot rows to a CSV
+    python -m experiments.check_sim merge=[mutants_0-100.csv,mutants_100-200.csv]   # slices' CSVs as one check
     python -m experiments.check_sim unimal100/train task=csr        # height-field tasks: MJX vs MuJoCo C, same patches
     python -m experiments.check_sim unimal100/train task=incline    # the incline: MJX vs MuJoCo C on MetaMorph's slab
     python -m experiments.check_sim unimal100/train task=csr num_robots=5 hfield_contacts=mjx   # MJX's own collider
@@ -25,10 +26,11 @@ import csv
 import dataclasses
 import sys
 import time
+from pathlib import Path
+from typing import List
 
 import jax
 import numpy as np
-from omegaconf import MISSING
 
 from mjx_morph.run import register
 from mjx_morph.sim import fidelity
@@ -47,7 +49,7 @@ _ENV = EnvConfig()
 
 @dataclasses.dataclass
 class CheckSimConfig:
-    set: str = MISSING                       # robot set name or path (unimal100/train, gen/train, a folder, ...)
+    set: str = ""                            # robot set name or path (unimal100/train, gen/train, a folder, ...)
     iterations: int = _ENV.iterations        # solver iterations (the env's default)
     ls_iterations: int = _ENV.ls_iterations  # line-search iterations (the env's default)
     mujoco_defaults: bool = False            # also check at MuJoCo's defaults (100 / 50)
@@ -74,6 +76,8 @@ class CheckSimConfig:
     unpadded_range: str = ""                 # "lo:hi": with unpadded_mjx, only robots lo..hi-1 alone in MJX (the
                                              # rest print nan), each as in a run over all robots: slices add up
     csv: str = ""                            # also write one row per robot (every printed column) to this CSV file
+    merge: List[str] = dataclasses.field(default_factory=list)   # instead of a check: the CSV files of one check's
+                                             # slices (unpadded_range) read as one, summarised (and written to csv=)
 
 
 register("check_sim_schema", CheckSimConfig)
@@ -92,7 +96,75 @@ def _range(text: str, n: int) -> range | None:
     return range(lo, hi)
 
 
+PADDED = ("error", "padding", "mjx", "sensitivity")        # the columns of the padded run (the same in every slice)
+ALONE = ("padding_mjx", "mjx_alone", "mjx_ulp")          # the columns of the robots run alone in MJX (one slice's)
+
+
+def merge_slices(paths: List[str]) -> tuple[list[str], list[list[str]]]:
+    """(header, rows) of one check from the CSV files of its slices (`unpadded_range`): every file must hold the same
+    robots with the same padded columns (the same check: same set, settings and seed); each robot's alone columns come
+    from the file that measured it (nan where none did; a robot measured twice must have the same values)."""
+    if not paths:
+        raise ValueError("merge: expected the CSV files of a check's slices, got none")
+    files = []
+    for path in paths:
+        if not Path(path).is_file():
+            raise ValueError(f"merge: {path}: no such file")
+        with open(path, newline="") as fh:
+            rows = list(csv.reader(fh))
+        if not rows or not {"robot", *PADDED, *ALONE} <= set(rows[0]):
+            raise ValueError(f"merge: {path}: not a check_sim CSV with unpadded_mjx columns; expected the header "
+                             f"robot,...,{','.join(PADDED + ALONE)}")
+        files.append((path, rows[0], rows[1:]))
+    first, header, merged = files[0][0], files[0][1], [list(r) for r in files[0][2]]
+    col = {k: i for i, k in enumerate(header)}
+    measured = lambda r: any(r[col[k]] != "nan" for k in ALONE)
+    where = {r[0]: first for r in merged if measured(r)}
+    for path, head, rows in files[1:]:
+        if head != header or [r[0] for r in rows] != [r[0] for r in merged]:
+            raise ValueError(f"merge: {path}: other columns or robots than {first}; expected slices of one check")
+        for mine, r in zip(merged, rows):
+            bad = next((k for k in header if k not in ALONE and r[col[k]] != mine[col[k]]), None)
+            if bad:
+                raise ValueError(f"merge: {path}: {r[0]}: {bad} {r[col[bad]]} differs from {first}'s "
+                                 f"{mine[col[bad]]}; expected slices of one check (same set, settings and seed)")
+            if not measured(r):
+                continue
+            if r[0] in where and any(r[col[k]] != mine[col[k]] for k in ALONE):
+                raise ValueError(f"merge: {path}: {r[0]} was run alone in {where[r[0]]} too, with other values")
+            for k in ALONE:
+                mine[col[k]] = r[col[k]]
+            where[r[0]] = path
+    return header, merged
+
+
+def merge(a: CheckSimConfig) -> None:
+    header, rows = merge_slices(a.merge)
+    col = {k: header.index(k) for k in header}
+    alone = [r for r in rows if r[col["mjx_alone"]] != "nan"]
+    print(f"# {len(a.merge)} slices: {len(alone)} of {len(rows)} robots run alone in MJX")
+    for field in PADDED + ALONE:
+        s = fidelity.summary([float(r[col[field]]) for r in rows])
+        print(f"# {field:11s} median {s['median']:.2e}  p99 {s['p99']:.2e}  max {s['max']:.2e} m")
+    over = {}
+    for field in ("error", "mjx_alone"):
+        over[field] = [r for r in rows if float(r[col[field]]) > a.tolerance]
+        names = ", ".join(f"{r[0]} ({float(r[col[field]]):.2e})" for r in over[field])
+        print(f"# {field}: {len(over[field])} of {len(alone) if field in ALONE else len(rows)} over "
+              f"{a.tolerance:g} m" + (f": {names}" if names else ""))
+    if a.csv:
+        with open(a.csv, "w", newline="") as fh:
+            csv.writer(fh).writerows([header, *rows])
+        print(f"# per-robot rows written to {a.csv}")
+    if over["error"]:           # as the check itself: padded robots over the tolerance make the exit status 1
+        raise SystemExit(1)
+
+
 def check(a: CheckSimConfig) -> None:
+    if a.merge:
+        return merge(a)
+    if not a.set:
+        raise ValueError("set: required, no value given (python -m experiments.check_sim SET ...)")
     rs = load_set(a.set)
     if a.mutated:
         robots = mutated_robots(rs.robots, a.mutated, seed=a.seed)
@@ -129,8 +201,7 @@ def check(a: CheckSimConfig) -> None:
               f"self-collision {'on' if a.self_collision else 'off'}, floor {a.floor_contacts}, {a.steps} control steps, "
               f"matmul precision {a.matmul_precision}, MJX in {fl} on {jax.devices()[0].platform} "
               f"({time.time() - t0:.0f} s)")
-        fields = ["error", "padding", "mjx", "sensitivity"] + (["padding_mjx", "mjx_alone", "mjx_ulp"]
-                                                                if a.unpadded_mjx else [])
+        fields = list(PADDED + (ALONE if a.unpadded_mjx else ()))
         print(" ".join([f"{'robot':40s}"] + [f"{f[:9]:>9s}" for f in fields]) + "   (m; error = padded MJX vs "
               "alone in MuJoCo C, padding = padded vs alone both in MuJoCo C, mjx = padded MJX vs padded MuJoCo C, "
               f"sensitivity = alone vs alone started {fidelity.PERTURBATION:g} away"

@@ -238,3 +238,43 @@ def test_check_sim_slices_the_alone_runs_and_writes_csv(tmp_path, capsys):
         assert msg in capsys.readouterr().err
     assert check_sim.main(["gen/train", "num_robots=2", "unpadded_range=0:1"]) == 2
     assert "needs unpadded_mjx=true" in capsys.readouterr().err
+    assert check_sim.main([f"merge=[{out},{out}]"]) == 0          # the same slice twice: its own values agree
+    assert "1 of 2 robots run alone in MJX" in capsys.readouterr().out
+
+
+def test_check_sim_merges_the_slices_of_one_check(tmp_path, capsys):
+    """`check_sim merge=[a.csv,b.csv]`: each robot's alone columns from the slice that ran it, the padded columns
+    checked equal (the same check); other robots, other padded values, a robot run twice with other values, or a
+    file that is no check_sim CSV are clear errors."""
+    import csv
+    from experiments import check_sim
+    head = ["robot", "iterations", "ls_iterations", *check_sim.PADDED, *check_sim.ALONE]
+    padded = {"r0": ["1e-6", "2e-7", "1e-6", "3e-7"], "r1": ["2e-3", "2e-7", "2e-3", "3e-3"], "r2": ["4e-6"] * 4}
+    alone = {"r0": ["5e-7", "1e-6", "6e-7"], "r1": ["4e-7", "2e-3", "5e-7"]}
+
+    def write(name, measured, rows=padded):
+        with (tmp_path / name).open("w", newline="") as fh:
+            csv.writer(fh).writerows([head] + [[r, 5, 8, *v, *(alone[r] if r in measured else ["nan"] * 3)]
+                                               for r, v in rows.items()])
+        return str(tmp_path / name)
+
+    a, b = write("a.csv", {"r0"}), write("b.csv", {"r1"})
+    out = tmp_path / "all.csv"
+    with pytest.raises(SystemExit) as stop:                              # r1 is over 1e-3 m padded: exit 1
+        check_sim.main([f"merge=[{a},{b}]", f"csv={out}"])
+    assert stop.value.code == 1
+    printed = capsys.readouterr().out
+    assert "2 of 3 robots run alone in MJX" in printed and "# mjx_alone: 1 of 2 over 0.001 m: r1 (2.00e-03)" in printed
+    rows = {r["robot"]: r for r in csv.DictReader(out.open())}
+    assert rows["r0"]["mjx_alone"] == "1e-6" and rows["r1"]["mjx_alone"] == "2e-3" and rows["r2"]["mjx_alone"] == "nan"
+    other = write("other.csv", {"r1"}, {**padded, "r2": ["5e-6"] * 4})
+    fewer = write("fewer.csv", {"r1"}, {k: padded[k] for k in ("r0", "r1")})
+    alone["r0"] = ["9e-7", "9e-7", "9e-7"]
+    twice = write("twice.csv", {"r0"})
+    (tmp_path / "x.csv").write_text("a,b\n1,2\n")
+    for files, msg in (([a, other], "r2: error 5e-6 differs from"), ([a, fewer], "other columns or robots"),
+                       ([a, twice], "was run alone in"), ([a, str(tmp_path / "x.csv")], "not a check_sim CSV"),
+                       ([a, str(tmp_path / "none.csv")], "no such file")):
+        assert check_sim.main([f"merge=[{','.join(files)}]"]) == 2
+        assert msg in capsys.readouterr().err
+    assert check_sim.main([]) == 2 and "set: required" in capsys.readouterr().err
