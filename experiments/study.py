@@ -19,6 +19,13 @@ fit, EVAL_SET_MIN minutes per set and run, in the study file's order of sets ove
 The seeds of a run train side by side in one program (`seeds=[...]` of experiments.run; those at the same checkpoint
 together), unless side_by_side=false. Afterwards: python -m experiments.report runs=[<out>/<study>] out=<dir>.
 
+Several GPUs of one host: `workers=N` runs the study in N processes, worker k on GPU k alone
+(CUDA_VISIBLE_DEVICES), each taking every N-th run of the plan (seeds last, so two seeds go to two GPUs), training and
+evaluating its runs with no communication; their output lines come prefixed [w<k>]. Independent runs, one per GPU,
+are the measured way to use several GPUs (docs/benchmarks.md, "Several devices"):
+
+    python -m experiments.study ab_precision only=[fp32] archs=[modumorph] seeds=[0,1] workers=2 time_limit_min=9
+
 On several hosts (the same command on each, with the distributed settings of experiments.run after --: README,
 "Several hosts") every process trains each run, process 0 alone evaluates it while the others wait.
 """
@@ -26,7 +33,11 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
+import shutil
+import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 from typing import List, Optional
@@ -60,6 +71,8 @@ class StudyConfig:
     run: List[str] = dataclasses.field(default_factory=list)   # extra experiments.run overrides (after --)
     only: Optional[List[str]] = None    # these runs of the study file alone (None: all)
     time_limit_min: Optional[float] = None   # end this invocation after about N minutes of training (resumable)
+    workers: int = 1                    # processes, one per GPU of this host, each training every workers-th run
+    worker: Optional[int] = None        # set by the study for its workers: this process is worker k (0-based)
 
 
 register("study_schema", StudyConfig)
@@ -102,6 +115,77 @@ def plan(c: StudyConfig) -> list[StudyRun]:
     return runs
 
 
+def share(runs: list[StudyRun], workers: int, worker: int) -> list[StudyRun]:
+    """Worker `worker`'s runs: every workers-th of the plan (grouped by architecture and run, seeds last, so the
+    seeds of one run go to different workers)."""
+    return runs[worker::workers]
+
+
+def worker_devices(workers: int) -> list[str]:
+    """CUDA_VISIBLE_DEVICES of each worker: one GPU each, from those this process may use (its own
+    CUDA_VISIBLE_DEVICES, else every GPU nvidia-smi lists). Without nvidia-smi (a CPU machine) the workers share the
+    CPU and the names are 0, 1, ..."""
+    visible = os.environ.get("CUDA_VISIBLE_DEVICES")
+    if visible is not None:
+        gpus = [g.strip() for g in visible.split(",") if g.strip()]
+        source = f"CUDA_VISIBLE_DEVICES={visible}"
+    elif shutil.which("nvidia-smi"):
+        listed = subprocess.run(["nvidia-smi", "-L"], capture_output=True, text=True).stdout
+        gpus = [str(i) for i, ln in enumerate(listed.splitlines()) if ln.startswith("GPU ")]
+        source = "nvidia-smi -L"
+    else:
+        return [str(k) for k in range(workers)]
+    if len(gpus) < workers:
+        raise ValueError(f"workers={workers}: only {len(gpus)} GPU(s) visible ({source}); expected at most one "
+                         "worker per GPU")
+    return gpus[:workers]
+
+
+def worker_command(argv: list[str], k: int) -> list[str]:
+    """The command of worker k: this study's own arguments plus worker=k."""
+    return [sys.executable, "-m", "experiments.study", *argv, f"worker={k}"]
+
+
+def run_workers(c: StudyConfig, argv: list[str], runs: list[StudyRun]) -> None:
+    """Start `c.workers` studies, one per GPU, relay their output prefixed [w<k>] and wait for all of them."""
+    if any(o.split("=")[0] in ("coordinator", "num_processes", "process_id") for o in c.run):
+        raise ValueError("workers: runs of several processes (coordinator/num_processes/process_id) cannot be "
+                         "spread over workers; use workers=1")
+    gpus = worker_devices(c.workers)
+    for k in range(c.workers):
+        mine = share(runs, c.workers, k)
+        print(f"[study] worker {k} (CUDA_VISIBLE_DEVICES={gpus[k]}): "
+              + (", ".join(r.dir.name for r in mine) or "nothing to do"), flush=True)
+    lock = threading.Lock()
+
+    def relay(k: int, stream) -> None:
+        for line in stream:
+            with lock:
+                print(f"[w{k}] {line}", end="", flush=True)
+
+    procs, threads = [], []
+    for k in range(c.workers):
+        env = {**os.environ, "CUDA_VISIBLE_DEVICES": gpus[k], "PYTHONUNBUFFERED": "1"}
+        p = subprocess.Popen(worker_command(argv, k), env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                             text=True, bufsize=1)
+        t = threading.Thread(target=relay, args=(k, p.stdout), daemon=True)
+        t.start()
+        procs.append(p)
+        threads.append(t)
+    try:
+        codes = [p.wait() for p in procs]
+    except KeyboardInterrupt:           # Ctrl-C reaches the workers too (one process group): let them checkpoint
+        codes = [p.wait() for p in procs]
+        raise
+    finally:
+        for t in threads:
+            t.join(timeout=5)
+    failed = [f"worker {k} (exit status {code})" for k, code in enumerate(codes) if code]
+    if failed:
+        raise ValueError(f"{', '.join(failed)} failed: see its [w<k>] lines above; rerun the same command to go on")
+    print(f"[study] all {c.workers} workers ended", flush=True)
+
+
 def batches(runs: list[StudyRun], side_by_side: bool) -> list[tuple[list[StudyRun], list[str]]]:
     """[(runs, experiments.run overrides)]: each group's seeds at the same checkpoint trained in one program."""
     out = []
@@ -124,13 +208,25 @@ def batches(runs: list[StudyRun], side_by_side: bool) -> list[tuple[list[StudyRu
     return out
 
 
-def run_study(c: StudyConfig) -> None:
+def run_study(c: StudyConfig, argv: Optional[list[str]] = None) -> None:
     if c.time_limit_min is not None and c.time_limit_min <= 0:
         raise ValueError(f"time_limit_min={c.time_limit_min}: expected a positive number of minutes or null")
+    if c.workers < 1 or (c.worker is not None and not 0 <= c.worker < c.workers):
+        raise ValueError(f"workers={c.workers}, worker={c.worker}: expected workers >= 1 and worker in "
+                         f"0..workers-1 (worker is set by the study for its own processes)")
     runs = plan(c)
+    if c.worker is not None:
+        runs = share(runs, c.workers, c.worker)
     configs = [compose_run_config(r.overrides) for r in runs]     # every run's config is checked before any runs
-    for r in runs:
-        print(f"python -m experiments.run {' '.join(r.overrides)}   # then evaluate {r.sets}")
+    if c.worker is None or c.dry_run:    # a worker's runs were listed by the study that started it
+        for r in runs:
+            print(f"python -m experiments.run {' '.join(r.overrides)}   # then evaluate {r.sets}")
+    if c.workers > 1 and c.worker is None:
+        if c.dry_run:
+            for k in range(c.workers):
+                print(f"[study] worker {k}: {', '.join(r.dir.name for r in share(runs, c.workers, k))}")
+            return
+        return run_workers(c, list(argv or []), runs)
     if c.dry_run:
         return
     checked = set()             # the evaluation sets exist for the runs' robots (before hours of training)
@@ -195,7 +291,7 @@ def main(argv=None) -> int:
         i = argv.index("--")
         argv, extra = argv[:i], argv[i + 1:]
         argv.append("run=[" + ",".join(f"'{x}'" for x in extra) + "]")
-    return cli.main(run_study, "run_study", StudyConfig, __doc__, argv, positional="name")
+    return cli.main(lambda c: run_study(c, argv), "run_study", StudyConfig, __doc__, argv, positional="name")
 
 
 if __name__ == "__main__":

@@ -132,6 +132,36 @@ def test_ab_studies_compose(capsys, unimals, name, archs, runs):
     assert all("stop_at=245" in ln for ln in lines) == (name != "kl_threshold")
 
 
+def test_study_workers_split_the_runs_one_gpu_each(capsys, monkeypatch, unimals):
+    """workers=N: every run of the plan goes to exactly one worker, the seeds of a run to different workers; each
+    worker is the same study with worker=k on GPU k alone, its lines relayed with [w<k>]; a failed worker fails the
+    study, naming it."""
+    from experiments import study
+    assert study.main(["ab_precision", "seeds=[0,1]", "workers=2", "dry_run=true"]) == 0
+    shares = [ln.split(": ")[1].split(", ") for ln in capsys.readouterr().out.splitlines()
+              if ln.startswith("[study] worker")]
+    assert len(shares) == 2 and sorted(shares[0] + shares[1]) == sorted(
+        f"ft-{a}-{r}-s{s}" for a in ("rmomo", "modumorph") for r in ("fp32", "tf32", "bf16") for s in (0, 1))
+    assert all(d.endswith(f"-s{k}") for k in (0, 1) for d in shares[k])
+    assert study.main(["ab_precision", "seeds=[0,1]", "workers=2", "worker=1", "dry_run=true"]) == 0
+    mine = capsys.readouterr().out.strip().splitlines()       # a worker lists its own share
+    assert len(mine) == 6 and all("seed=1" in ln for ln in mine)
+    assert study.main(["ab_precision", "workers=2", "worker=2"]) == 2
+    assert "worker in 0..workers-1" in capsys.readouterr().err
+
+    monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "4,7")
+    fake = ("import os, sys; g = os.environ['CUDA_VISIBLE_DEVICES']; print('gpu', g, sys.argv[-1]); "
+            "sys.exit(3 if g == '7' else 0)")
+    monkeypatch.setattr(study, "worker_command", lambda argv, k: [sys.executable, "-c", fake, *argv, f"worker={k}"])
+    assert study.main(["ab_precision", "only=[fp32]", "archs=[rmomo]", "seeds=[0,1]", "workers=2"]) == 2
+    cap = capsys.readouterr()
+    assert "[w0] gpu 4 worker=0" in cap.out and "[w1] gpu 7 worker=1" in cap.out
+    assert "worker 1 (exit status 3) failed" in cap.err and "worker 0" not in cap.err
+    monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "0")
+    assert study.main(["ab_precision", "only=[fp32]", "archs=[rmomo]", "seeds=[0,1]", "workers=2"]) == 2
+    assert "only 1 GPU(s) visible (CUDA_VISIBLE_DEVICES=0)" in capsys.readouterr().err
+
+
 def test_study_time_limit_evaluates_what_fits(capsys, monkeypatch, tmp_path, unimals):
     """With time_limit_min, a finished batch gets as many (set, run) evaluations as fit (EVAL_SET_MIN each), the study
     file's sets in order over the seeds, one evaluate_run per run; the rest are named and left for the rerun; with
