@@ -3,6 +3,7 @@ starts): train the same tiny config on 1 device and on N devices and print how f
 from __future__ import annotations
 
 import json
+import re
 import sys
 
 import jax
@@ -16,18 +17,34 @@ from toy_env import ToyEnv
 TINY = dict(d_model=16, num_layers=1, num_heads=2, ffn_dim=32)
 
 
-def ppo_config() -> PPOConfig:
-    return PPOConfig(num_envs=8, rollout_len=16, window=8, burn_in=4, minibatch_size=32, epochs=2)
+def ppo_config(blocks: int | None = None) -> PPOConfig:
+    return PPOConfig(num_envs=8, rollout_len=16, window=8, burn_in=4, minibatch_size=32, epochs=2,
+                     minibatch_blocks=blocks)
 
 
-def toy_trainer(arch: str, devices: int | None, total_steps: int = 8 * 16 * 10, seeds: int | None = None) -> Trainer:
+def toy_trainer(arch: str, devices: int | None, total_steps: int = 8 * 16 * 10, seeds: int | None = None,
+                blocks: int | None = None) -> Trainer:
     """The tiny config on the ToyEnv (also tests/multi_process_run.py and tests/test_multihost.py)."""
     model = make_model(arch, hfield=False, decoder_dims=[], precision="fp32", **TINY)
-    return Trainer(ToyEnv(), model, ppo_config(), total_steps, fast_compile=True, devices=devices, seeds=seeds)
+    return Trainer(ToyEnv(), model, ppo_config(blocks), total_steps, fast_compile=True, devices=devices,
+                   seeds=seeds)
 
 
-def run(arch: str, devices: int, iters: int = 3, seed: int = 0):
-    trainer = toy_trainer(arch, devices)
+def update_collectives(trainer: Trainer, ts) -> list[list]:
+    """[op, elements] of every collective in the compiled update (the minibatch loop) of `trainer`."""
+    ts, batch, _ = trainer.rollout(ts)
+    out = []
+    for line in trainer.update.lower(ts, batch).compile().as_text().splitlines():
+        m = re.search(r"= (.*?) (all-gather|all-reduce|all-to-all|collective-permute|reduce-scatter)(-start)?\(", line)
+        if m:
+            sizes = [int(np.prod([int(d) for d in dims.split(",") if d])) for dims in re.findall(r"\[([\d,]*)\]",
+                                                                                                   m.group(1))]
+            out.append([m.group(2), sum(sizes)])
+    return out
+
+
+def run(arch: str, devices: int, iters: int = 3, seed: int = 0, blocks: int | None = None):
+    trainer = toy_trainer(arch, devices, blocks=blocks)
     ts = trainer.init(jax.random.PRNGKey(seed))
     rows = []
     for _ in range(iters):
@@ -42,20 +59,22 @@ def main(n: int) -> None:
     assert len(jax.devices()) == n, jax.devices()
     out = {}
     for arch in ("rmomo", "metamorph"):
-        one, rows1, s1 = run(arch, 1)
+        one, rows1, s1 = run(arch, 1, blocks=n)      # the minibatches of n devices: n blocks of envs
         many, rows_n, s_n = run(arch, n)
         diff = max(float(np.abs(np.asarray(a) - np.asarray(b)).max())
                    for a, b in zip(jax.tree.leaves(one.params), jax.tree.leaves(many.params)))
         env_diff = float(np.abs(np.asarray(one.env.obs.proprio) - np.asarray(many.env.obs.proprio)).max())
         out[arch] = {"param_diff": diff, "env_diff": env_diff, "shards": [s1, s_n],
                      "minibatches": [r["minibatches"] for r in rows1], "minibatches_n": [r["minibatches"] for r in rows_n],
-                     "loss": [r["loss"] for r in rows1], "loss_n": [r["loss"] for r in rows_n]}
+                     "loss": [r["loss"] for r in rows1], "loss_n": [r["loss"] for r in rows_n],
+                     "collectives": update_collectives(toy_trainer(arch, n), many),
+                     "params": int(sum(np.size(x) for x in jax.tree.leaves(many.params)))}
         if arch == "metamorph":      # two seeds side by side, spread over the devices (a 2 x n/2 mesh)
-            trainer = toy_trainer(arch, n, seeds=2)
+            trainer = toy_trainer(arch, n, seeds=2, blocks=n)
             ts = trainer.init(seed_keys([0, 1]))
             for _ in range(3):
                 ts, _ = trainer.iteration(ts)
-            alone = [one, run(arch, 1, seed=1)[0]]
+            alone = [one, run(arch, 1, seed=1, blocks=n)[0]]
             out["seeds"] = {"mesh": dict(trainer.mesh.shape), "shards": len(ts.first.sharding.device_set),
                             "param_diff": max(float(np.abs(np.asarray(a) - np.asarray(b)).max())
                                               for i in range(2) for a, b in

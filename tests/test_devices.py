@@ -40,8 +40,20 @@ def test_four_devices_equal_one_device(four_devices, arch):
     assert r["param_diff"] < PARAM_TOLERANCE, r
 
 
+def test_feed_forward_update_is_data_parallel(four_devices):
+    """On several devices each computes its own blocks of a minibatch (ppo.minibatch_blocks): MetaMorph's compiled
+    update moves no minibatch between devices, only the gradients and loss statistics (one all-reduce of at most the
+    parameters plus a few scalars). Recurrent models still gather theirs (their (W, B) -> W*B flatten splits the
+    sharded axis: docs/benchmarks.md, "Several devices")."""
+    r = four_devices["metamorph"]
+    ops = r["collectives"]
+    assert ops and all(op == "all-reduce" for op, _ in ops), ops
+    assert sum(n for _, n in ops) <= r["params"] + 64, (ops, r["params"])
+
+
 def test_seeds_spread_over_devices(four_devices):
-    """seeds=2 on 4 devices: a ("seed", "env") mesh of 2 x 2, each seed equal to that seed alone on one device."""
+    """seeds=2 on 4 devices: a ("seed", "env") mesh of 2 x 2, each seed equal to that seed alone on one device
+    (both with 4 blocks of envs per minibatch)."""
     r = four_devices["seeds"]
     assert r["mesh"] == {"seed": 2, "env": 2} and r["shards"] == 4
     assert r["param_diff"] < PARAM_TOLERANCE, r

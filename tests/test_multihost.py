@@ -59,8 +59,9 @@ def two_processes(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def one_device():
-    """The same run on this process's one device: (trainer, its parameters after every iteration)."""
-    trainer = toy_trainer(ARCH, devices=1, total_steps=ppo_config().steps_per_iter * ITERS)
+    """The same run on this process's one device: (trainer, its parameters after every iteration). Its minibatches
+    are those of the 4 devices of the two processes: 4 blocks of envs (ppo.minibatch_blocks)."""
+    trainer = toy_trainer(ARCH, devices=1, total_steps=ppo_config().steps_per_iter * ITERS, blocks=4)
     ts = trainer.init(jax.random.PRNGKey(0))
     params = []
     for _ in range(ITERS):

@@ -82,3 +82,26 @@ def test_ppo_loss_at_identical_policy():
     # the clip bounds the gain from moving the ratio beyond 1 + eps
     moved = ppo_loss(logp + 0.5, logp, jnp.ones(64), val, val, ret, jnp.zeros(64))
     assert float(moved.pi_loss) == pytest.approx(-1.2) and float(moved.clip_frac) == 1.0
+
+
+def test_shuffle_windows_blocks():
+    """The minibatch shuffle: each epoch uses every window once; with G blocks each minibatch takes m = mb / G windows
+    from each block (block-local ids); G = 1 is one plain permutation of all windows per epoch."""
+    from mjx_morph.ppo.config import PPOConfig
+    from mjx_morph.ppo.trainer import minibatch_blocks, shuffle_windows
+    key, epochs, n_windows, mb = jax.random.PRNGKey(3), 2, 64, 16
+    plain = np.asarray(shuffle_windows(key, epochs, n_windows, mb, 1))
+    assert plain.shape == (epochs * n_windows // mb, 1, mb)
+    perms = jax.vmap(lambda k: jax.random.permutation(k, n_windows))(jax.random.split(key, epochs))
+    np.testing.assert_array_equal(plain.reshape(epochs, -1), np.asarray(perms))
+    ids = np.asarray(shuffle_windows(key, epochs, n_windows, mb, 4))          # 4 blocks of 16 windows, m = 4
+    assert ids.shape == (epochs * 4, 4, 4)
+    for e in range(epochs):
+        for g in range(4):
+            assert sorted(ids[e * 4:(e + 1) * 4, g].ravel()) == list(range(16))   # each block's windows once
+    cfg = PPOConfig(num_envs=8, minibatch_blocks=3)
+    with pytest.raises(ValueError, match="ppo.minibatch_blocks=3: expected a divisor of ppo.num_envs=8"):
+        minibatch_blocks(cfg, 4, 1)
+    with pytest.raises(ValueError, match="a multiple of the 4 device"):
+        minibatch_blocks(PPOConfig(num_envs=8, minibatch_blocks=2), 4, 4)
+    assert minibatch_blocks(PPOConfig(num_envs=8), 4, 2) == 2 and minibatch_blocks(PPOConfig(num_envs=8), 4, 1) == 1

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import dataclasses
+from typing import Optional
 
 
 @dataclasses.dataclass
@@ -24,6 +25,10 @@ class PPOConfig:
     max_grad_norm: float = 0.5
     kl_threshold: float = 0.05      # approximate-KL early stop (0.05 = MetaMorph's KL_TARGET_COEF 5; the paper also uses 0.03)
     sampling: str = "balanced"      # robot sampling at resets: balanced | uniform
+    minibatch_blocks: Optional[int] = None   # G: each minibatch takes 1/G of its windows from each of G equal blocks
+                                    # of envs (stratified); None: the devices the envs are sharded over, so one device
+                                    # keeps the plain uniform shuffle (G = 1) and each of several computes its own
+                                    # share of a minibatch (data parallel, gradients summed across devices)
 
     @property
     def steps_per_iter(self) -> int:
@@ -49,6 +54,8 @@ class PPOConfig:
                 raise ValueError(f"ppo.{key}={getattr(self, key)}: expected a value in [0, 1]")
         if self.lr <= 0 or self.clip_eps <= 0:
             raise ValueError(f"ppo.lr={self.lr}, ppo.clip_eps={self.clip_eps}: expected positive values")
+        if self.minibatch_blocks is not None and self.minibatch_blocks < 1:
+            raise ValueError(f"ppo.minibatch_blocks={self.minibatch_blocks}: expected a positive integer or null")
         if self.sampling not in ("balanced", "uniform"):
             raise ValueError(f"ppo.sampling={self.sampling}: expected balanced or uniform")
 

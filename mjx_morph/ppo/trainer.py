@@ -175,6 +175,7 @@ class Trainer:
             raise ValueError(f"seeds={seeds}: expected a positive number of seeds or None")
         self.num_seeds = None if seeds is None else int(seeds)
         self.mesh = device_mesh(devices, config.num_envs, self.num_seeds)
+        self.blocks = minibatch_blocks(config, self.mb_windows, 1 if self.mesh is None else self.mesh.shape["env"])
         opts = dict(compiler_options=FAST_COMPILE) if fast_compile else {}
         seeded = self.num_seeds is not None
         if self.mesh is None:
@@ -187,7 +188,8 @@ class Trainer:
             bt = NamedSharding(self.mesh, P("seed", None, "env") if seeded else P(None, "env"))
             rep = NamedSharding(self.mesh, P())               # metrics: on every device, so every process reads them
         st = self._state_sharding
-        each = jax.vmap if seeded else (lambda f: f)
+        each = (lambda f: jax.vmap(f, spmd_axis_name="seed" if self.mesh is not None else None)) if seeded \
+            else (lambda f: f)
         self.iteration = jit(each(self._iteration), out=(st, rep))
         self.rollout = jit(each(self._rollout), out=(st, bt, rep))
         self.update = jit(each(self._update), out=(st, rep))
@@ -310,19 +312,42 @@ class Trainer:
 
     # ------------------------------------------------------------------ update
     def _minibatch(self, batch: Batch, ids: jax.Array) -> Minibatch:
-        """Windows `ids` (flat index k * N + n) -> time-major sequences of B + W steps and their targets."""
+        """Windows `ids` -> time-major sequences of B + W steps and their targets, M = G * m windows.
+        `ids` (G, m): in each of the G equal blocks of envs, block-local windows j = k * (N / G) + n' (window k of the
+        block's env n'). Each block is gathered from its own envs (vmap over the blocks), so where the envs are
+        sharded over devices every device gathers and computes its own blocks' share of the minibatch."""
         cfg = self.cfg
-        n_env = cfg.num_envs
-        k, n = ids // n_env, ids % n_env
+        g, m = ids.shape
+        per_block = cfg.num_envs // g
+        k, n = ids // per_block, ids % per_block                                 # (G, m)
         b, w = cfg.burn_in, cfg.window
-        t_seq = (k * w)[None, :] + jnp.arange(b + w)[:, None]                  # (B + W, M) in tail+rollout time
-        t_win = t_seq[b:] - b                                                   # (W, M) in rollout time
-        obs = jax.tree.map(lambda x: x[t_seq, n[None, :]], batch.obs)
-        first = batch.first[t_seq, n[None, :]]
-        carry0 = jax.tree.map(lambda s: s[k, n], batch.starts)
-        pick = lambda x: x[t_win, n[None, :]]
-        return Minibatch(obs, first, carry0, pick(batch.action), pick(batch.logp), pick(batch.value),
-                         pick(batch.adv), pick(batch.ret))
+        t_seq = (k * w)[:, None, :] + jnp.arange(b + w)[None, :, None]          # (G, B + W, m) tail+rollout time
+        t_win = t_seq[:, b:] - b                                                # (G, W, m) rollout time
+
+        def blocked(x, t):          # x (time, N, ...) -> (len(t), G * m, ...): block i's windows from block i's envs
+            xb = x.reshape(x.shape[0], g, per_block, *x.shape[2:])
+            out = jax.vmap(lambda xg, tg, ng: xg[tg, ng[None, :]], in_axes=(1, 0, 0), out_axes=1)(xb, t, n)
+            return out.reshape(out.shape[0], g * m, *out.shape[3:])
+
+        def blocked_start(s):       # s (K, N, ...) -> (G * m, ...)
+            sb = s.reshape(s.shape[0], g, per_block, *s.shape[2:])
+            out = jax.vmap(lambda sg, kg, ng: sg[kg, ng], in_axes=(1, 0, 0))(sb, k, n)
+            return out.reshape(g * m, *out.shape[2:])
+
+        obs = jax.tree.map(lambda x: blocked(x, t_seq), batch.obs)
+        first = blocked(batch.first, t_seq)
+        carry0 = jax.tree.map(blocked_start, batch.starts)
+        pick = lambda x: blocked(x, t_win)
+        mb = Minibatch(obs, first, carry0, pick(batch.action), pick(batch.logp), pick(batch.value),
+                       pick(batch.adv), pick(batch.ret))
+        if self.mesh is None:
+            return mb
+        # the windows axis stays where the blocks are (XLA would otherwise gather the minibatch onto every device
+        # and compute it there in full, as it did for the recurrent models)
+        along = lambda axis: lambda x: jax.lax.with_sharding_constraint(
+            x, NamedSharding(self.mesh, P(*([None] * axis), "env")))
+        return mb._replace(**{f: jax.tree.map(along(0 if f == "carry0" else 1), getattr(mb, f))
+                              for f in mb._fields})
 
     def _loss(self, params, batch: Batch, ids):
         mb = self._minibatch(batch, ids)
@@ -338,7 +363,7 @@ class Trainer:
     def _evaluate_windows(self, params, batch: Batch):
         """(logp, value) recomputed for every window of `batch`, and the stored (logp_old, value_old), all
         (W, num_windows). With the rollout's parameters they must agree: the test of the recurrent bookkeeping."""
-        ids = jnp.arange(self.cfg.num_envs * self.num_windows)
+        ids = jnp.tile(jnp.arange(self.cfg.num_envs * self.num_windows // self.blocks), (self.blocks, 1))
         mb = self._minibatch(batch, ids)
         mu, value, _ = self.model.sequence(params, self.env.robots, mb.obs, mb.carry0, mb.first,
                                            burn_in=self.cfg.burn_in)
@@ -350,9 +375,7 @@ class Trainer:
         lr = learning_rate(ts.iteration, self.num_iters, cfg.lr, cfg.warmup_iters)
         opt_state = ts.opt_state._replace(hyperparams={**ts.opt_state.hyperparams, "learning_rate": lr})
         key, k_perm = jax.random.split(ts.key)
-        n_windows = cfg.num_envs * self.num_windows
-        perms = jax.vmap(lambda k: jax.random.permutation(k, n_windows))(jax.random.split(k_perm, cfg.epochs))
-        ids = perms[:, : self.num_minibatches * self.mb_windows].reshape(-1, self.mb_windows)
+        ids = shuffle_windows(k_perm, cfg.epochs, cfg.num_envs * self.num_windows, self.mb_windows, self.blocks)
         grad_fn = jax.value_and_grad(self._loss, has_aux=True)
         zero_info = LossInfo(*([jnp.float32(0.0)] * len(LossInfo._fields)))
 
@@ -388,6 +411,32 @@ class Trainer:
 
 
 # ---------------------------------------------------------------------- several devices
+def minibatch_blocks(cfg: PPOConfig, mb_windows: int, env_shards: int) -> int:
+    """G of `ppo.minibatch_blocks` (None: the env shards), checked against the geometry and the devices."""
+    g = env_shards if cfg.minibatch_blocks is None else int(cfg.minibatch_blocks)
+    if cfg.num_envs % g or mb_windows % g or g % env_shards:
+        raise ValueError(f"ppo.minibatch_blocks={g}: expected a divisor of ppo.num_envs={cfg.num_envs} and of the "
+                         f"{mb_windows} windows of a minibatch, and a multiple of the {env_shards} device(s) the envs "
+                         "are sharded over (each device gathers whole blocks)")
+    return g
+
+
+def shuffle_windows(key: jax.Array, epochs: int, n_windows: int, mb_windows: int, blocks: int) -> jax.Array:
+    """The minibatches of every epoch, (epochs * minibatches, G, m) block-local window ids: each epoch a random
+    permutation of each block's windows, minibatch i taking the i-th m = mb_windows / G of every block. G = 1 is the
+    plain shuffle of all windows (flat ids k * N + n), without replacement within an epoch either way."""
+    per_block, m = n_windows // blocks, mb_windows // blocks
+    keys = jax.random.split(key, epochs)
+    if blocks == 1:             # one permutation of all windows per epoch (the original PPO's shuffle)
+        perms = jax.vmap(lambda k: jax.random.permutation(k, n_windows))(keys)[:, None]
+    else:
+        perms = jax.vmap(lambda k: jax.vmap(lambda kb: jax.random.permutation(kb, per_block))(
+            jax.random.split(k, blocks)))(keys)                                  # (epochs, G, per_block)
+    used = (n_windows // mb_windows) * m                                         # whole minibatches only
+    ids = perms[:, :, :used].reshape(epochs, blocks, -1, m)                      # (epochs, G, minibatches, m)
+    return ids.transpose(0, 2, 1, 3).reshape(-1, blocks, m)
+
+
 def seed_keys(seeds) -> jax.Array:
     """The init keys of several seeds, stacked: `trainer.init(seed_keys([0, 1]))`."""
     return jnp.stack([jax.random.PRNGKey(int(s)) for s in seeds])
