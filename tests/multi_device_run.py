@@ -60,6 +60,7 @@ def main(n: int) -> None:
     out = {}
     for arch in ("rmomo", "metamorph"):
         one, rows1, s1 = run(arch, 1, blocks=n)      # the minibatches of n devices: n blocks of envs
+        one_trainer = toy_trainer(arch, 1)
         many, rows_n, s_n = run(arch, n)
         diff = max(float(np.abs(np.asarray(a) - np.asarray(b)).max())
                    for a, b in zip(jax.tree.leaves(one.params), jax.tree.leaves(many.params)))
@@ -68,7 +69,9 @@ def main(n: int) -> None:
                      "minibatches": [r["minibatches"] for r in rows1], "minibatches_n": [r["minibatches"] for r in rows_n],
                      "loss": [r["loss"] for r in rows1], "loss_n": [r["loss"] for r in rows_n],
                      "collectives": update_collectives(toy_trainer(arch, n), many),
-                     "params": int(sum(np.size(x) for x in jax.tree.leaves(many.params)))}
+                     "params": int(sum(np.size(x) for x in jax.tree.leaves(many.params))),
+                     "tables": int(sum(np.prod(x.shape) for x in jax.tree.leaves(jax.eval_shape(
+                         one_trainer.model.robot_cache, one.params, one_trainer.env.robots))))}
         if arch == "metamorph":      # two seeds side by side, spread over the devices (a 2 x n/2 mesh)
             trainer = toy_trainer(arch, n, seeds=2, blocks=n)
             ts = trainer.init(seed_keys([0, 1]))

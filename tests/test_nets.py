@@ -227,6 +227,25 @@ def test_sequence_equals_steps(arch):
     assert_tree_close(c1, c2)
 
 
+@pytest.mark.parametrize("arch", ["rmomo", "metamorph"])
+def test_batch_major_rows_give_the_same_sequence(arch):
+    """batch_major (what the trainer uses where the batch is sharded over devices) changes only the order in which
+    the per-sample networks see the window's rows: outputs, final carry and the burn-in's carry are the same."""
+    model, robots, params, _, seq = setup(arch)
+    obs_seq = make_obs(5, (T, B))
+    resets = random_resets(5)
+    carry0 = random_carry(model, 5)
+    mu1, v1, c1 = seq(params, robots, obs_seq, carry0, resets, burn_in=2)
+    run = fast_jit(functools.partial(model.sequence, burn_in=2, batch_major=True))
+    mu2, v2, c2 = run(params, robots, obs_seq, carry0, resets)
+    assert mu2.shape == mu1.shape == (T - 2, B, 24)
+    assert_close(mu1, mu2)
+    assert_close(v1, v2)
+    assert_tree_close(c1, c2)
+    adv = lambda bm: model.advance(params, robots, obs_seq, carry0, resets, batch_major=bm)
+    assert_tree_close(adv(False), adv(True))
+
+
 @pytest.mark.parametrize("arch", RECURRENT)
 def test_done_in_the_middle_equals_two_sequences(arch):
     """A done flag at step k of one sequence == a sequence of k steps followed by a fresh sequence (zero

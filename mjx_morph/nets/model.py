@@ -196,12 +196,16 @@ class Model:
 
     @_in_precision
     def sequence(self, params: Params, robots: Robots, obs_seq: Any, carry0: Carry, resets: jax.Array,
-                 burn_in: int = 0, cache: dict | None = None) -> tuple[jax.Array, jax.Array, Carry]:
+                 burn_in: int = 0, cache: dict | None = None,
+                 batch_major: bool = False) -> tuple[jax.Array, jax.Array, Carry]:
         """A sequence [T, B, ...] from stored start states `carry0` ([B, 12, H] leaves).
 
         -> mu [T - burn_in, B, 24], value [T - burn_in, B], carry after the last step. The first `burn_in`
         steps only advance the cells (no gradient flows through them); `resets[t]` zeroes the carry and the
-        previous action before step t. With burn_in = 0 this equals T calls of `step`."""
+        previous action before step t. With burn_in = 0 this equals T calls of `step`.
+        `batch_major`: the per-sample networks see the window's samples in (B, T) order instead of (T, B), the same
+        numbers in another row order; where B is sharded over devices this keeps it sharded (a (T, B) -> T*B merge
+        with B minor cannot be, and XLA gathers the whole batch onto every device instead)."""
         obs_seq = as_obs(obs_seq)
         resets = jnp.asarray(resets, bool)
         t_all, b = resets.shape
@@ -212,7 +216,9 @@ class Model:
         if cache is None:
             cache = self.robot_cache(params, robots)
         parts = self._parts(robots, obs_seq, resets)                     # [T, B, ...]
-        win = _flatten(jax.tree.map(lambda x: x[burn_in:], parts), 2)      # [W*B, ...]
+        order = (lambda x: jnp.swapaxes(x, 0, 1)) if batch_major else (lambda x: x)   # [T, B] <-> rows' order
+        win = _flatten(jax.tree.map(lambda x: order(x[burn_in:]), parts), 2)  # [W*B, ...] ([B*W, ...] batch-major)
+        rows = (b, w) if batch_major else (w, b)
         outs = {}
         if not self.recurrent:
             for name, net in self.nets.items():
@@ -226,28 +232,31 @@ class Model:
             carry = carry0
             if burn_in:
                 burn = jax.tree.map(lambda x: x[:burn_in], parts)
-                carry = self._advance(params, burn, carry0, resets[:burn_in], cache)
-            xg_w = {name: p["xg"].reshape(w, b, NUM_TOKENS, -1) for name, p in pre_w.items()}
+                carry = self._advance(params, burn, carry0, resets[:burn_in], cache, batch_major)
+            xg_w = {name: order(p["xg"].reshape(*rows, NUM_TOKENS, -1)) for name, p in pre_w.items()}
             final, hs = self._scan(params, carry, xg_w, resets[burn_in:], parts["node_mask"][burn_in:])
             for name, net in self.nets.items():
-                h = hs[name].reshape(w * b, NUM_TOKENS, -1)
+                h = order(hs[name]).reshape(w * b, NUM_TOKENS, -1)
                 outs[name] = net.apply({"params": params[name]}, pre_w[name], h, win, cache[name], method="post")
         mu, value = self._outputs(outs["actor"], outs["critic"], win)
-        return mu.reshape(w, b, NUM_ACTIONS), value.reshape(w, b), final
+        return order(mu.reshape(*rows, NUM_ACTIONS)), order(value.reshape(rows)), final
 
-    def _advance(self, params: Params, parts: dict, carry0: Carry, resets: jax.Array, cache: dict) -> Carry:
-        """The cells alone over time-major `parts` [T, B, ...], under stop_gradient (the burn-in)."""
+    def _advance(self, params: Params, parts: dict, carry0: Carry, resets: jax.Array, cache: dict,
+                 batch_major: bool = False) -> Carry:
+        """The cells alone over time-major `parts` [T, B, ...], under stop_gradient (the burn-in);
+        `batch_major` as in `sequence`."""
         t, b = resets.shape
-        flat = _flatten(parts, 2)
-        xg = {name: jax.lax.stop_gradient(
+        order = (lambda x: jnp.swapaxes(x, 0, 1)) if batch_major else (lambda x: x)
+        flat = _flatten(jax.tree.map(order, parts), 2)
+        xg = {name: order(jax.lax.stop_gradient(
                   net.apply({"params": params[name]}, flat, cache[name], method="pre")["xg"]
-              ).reshape(t, b, NUM_TOKENS, -1) for name, net in self.nets.items()}
+              ).reshape(*((b, t) if batch_major else (t, b)), NUM_TOKENS, -1)) for name, net in self.nets.items()}
         carry, _ = self._scan(params, carry0, xg, resets, parts["node_mask"])
         return jax.lax.stop_gradient(carry)
 
     @_in_precision
     def advance(self, params: Params, robots: Robots, obs_seq: Any, carry0: Carry, resets: jax.Array,
-                cache: dict | None = None) -> Carry:
+                cache: dict | None = None, batch_major: bool = False) -> Carry:
         """Run only the recurrent cells over a sequence [T, B, ...] from `carry0` -- exactly the burn-in of
         `sequence` -- and return the carry after it (no outputs, no gradient). Feed-forward: returns carry0."""
         if not self.recurrent:
@@ -256,7 +265,7 @@ class Model:
         resets = jnp.asarray(resets, bool)
         if cache is None:
             cache = self.robot_cache(params, robots)
-        return self._advance(params, self._parts(robots, obs_seq, resets), carry0, resets, cache)
+        return self._advance(params, self._parts(robots, obs_seq, resets), carry0, resets, cache, batch_major)
 
     # ------------------------------------------------------------------ distribution helpers
     def sample(self, key: jax.Array, mu: jax.Array, act_mask: jax.Array | None = None) -> jax.Array:

@@ -264,7 +264,7 @@ class Trainer:
         # The acting state at the rollout start is re-derived by the same burn-in over the tail that training will
         # run, with the current parameters: acting and training then see identical states (ratio exactly 1).
         carry = self.model.advance(ts.params, self.env.robots, ts.tail_obs, ts.tail_carry, ts.tail_first,
-                                   cache=cache) if b else ts.carry
+                                   cache=cache, batch_major=self.mesh is not None) if b else ts.carry
         c0 = ActCarry(ts.env, carry, ts.first, ts.obs_rms, ts.rew)
         keys = jax.random.split(k_roll, cfg.rollout_len).reshape(self.num_windows, cfg.window, -1)
         save_at = w - b if b else w          # the next window's burn-in starts after w - b steps of this one
@@ -352,7 +352,8 @@ class Trainer:
     def _loss(self, params, batch: Batch, ids):
         mb = self._minibatch(batch, ids)
         model, robots = self.model, self.env.robots
-        mu, value, _ = model.sequence(params, robots, mb.obs, mb.carry0, mb.first, burn_in=self.cfg.burn_in)
+        mu, value, _ = model.sequence(params, robots, mb.obs, mb.carry0, mb.first, burn_in=self.cfg.burn_in,
+                                      batch_major=self.mesh is not None)
         act_mask = robots.act_mask[mb.obs.robot[self.cfg.burn_in:]]
         logp = model.log_prob(mu, mb.action, act_mask)
         info = ppo_loss(logp, mb.logp, mb.adv, value, mb.value, mb.ret, model.entropy(mu, act_mask),
@@ -366,7 +367,7 @@ class Trainer:
         ids = jnp.tile(jnp.arange(self.cfg.num_envs * self.num_windows // self.blocks), (self.blocks, 1))
         mb = self._minibatch(batch, ids)
         mu, value, _ = self.model.sequence(params, self.env.robots, mb.obs, mb.carry0, mb.first,
-                                           burn_in=self.cfg.burn_in)
+                                           burn_in=self.cfg.burn_in, batch_major=self.mesh is not None)
         logp = self.model.log_prob(mu, mb.action, self.env.robots.act_mask[mb.obs.robot[self.cfg.burn_in:]])
         return logp, value, mb.logp, mb.value
 
