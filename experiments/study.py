@@ -19,12 +19,13 @@ fit, EVAL_SET_MIN minutes per set and run, in the study file's order of sets ove
 The seeds of a run train side by side in one program (`seeds=[...]` of experiments.run; those at the same checkpoint
 together), unless side_by_side=false. Afterwards: python -m experiments.report runs=[<out>/<study>] out=<dir>.
 
-Several GPUs of one host: `workers=N` runs the study in N processes, worker k on GPU k alone
-(CUDA_VISIBLE_DEVICES), each taking every N-th run of the plan (seeds last, so two seeds go to two GPUs), training and
-evaluating its runs with no communication; their output lines come prefixed [w<k>]. Independent runs, one per GPU,
+Several GPUs of one host: the study runs in one process per visible GPU (`workers=N` for another number, 1 for
+one process), worker k on GPU k alone (CUDA_VISIBLE_DEVICES), each taking every N-th run of the plan (seeds last, so
+two seeds go to two GPUs), training and evaluating its runs with no communication; their output lines come prefixed
+[w<k>]. Independent runs, one per GPU,
 are the measured way to use several GPUs (docs/benchmarks.md, "Several devices"):
 
-    python -m experiments.study ab_precision only=[fp32] archs=[modumorph] seeds=[0,1] workers=2 time_limit_min=9
+    python -m experiments.study ab_precision only=[fp32] archs=[modumorph] seeds=[0,1] time_limit_min=9   # 2 GPUs
 
 On several hosts (the same command on each, with the distributed settings of experiments.run after --: README,
 "Several hosts") every process trains each run, process 0 alone evaluates it while the others wait.
@@ -71,7 +72,8 @@ class StudyConfig:
     run: List[str] = dataclasses.field(default_factory=list)   # extra experiments.run overrides (after --)
     only: Optional[List[str]] = None    # these runs of the study file alone (None: all)
     time_limit_min: Optional[float] = None   # end this invocation after about N minutes of training (resumable)
-    workers: int = 1                    # processes, one per GPU of this host, each training every workers-th run
+    workers: Optional[int] = None       # processes, one per GPU, each training every workers-th run (None: one per
+                                        # visible GPU, at most one per run; 1 without GPUs or with several hosts)
     worker: Optional[int] = None        # set by the study for its workers: this process is worker k (0-based)
 
 
@@ -121,39 +123,56 @@ def share(runs: list[StudyRun], workers: int, worker: int) -> list[StudyRun]:
     return runs[worker::workers]
 
 
+def visible_gpus() -> tuple[list[str], str] | None:
+    """The GPUs this process may use and where that was read (its CUDA_VISIBLE_DEVICES, else nvidia-smi -L), without
+    starting JAX (which would take their memory); None without nvidia-smi (a CPU machine)."""
+    visible = os.environ.get("CUDA_VISIBLE_DEVICES")
+    if visible is not None:
+        return [g.strip() for g in visible.split(",") if g.strip()], f"CUDA_VISIBLE_DEVICES={visible}"
+    if shutil.which("nvidia-smi"):
+        listed = subprocess.run(["nvidia-smi", "-L"], capture_output=True, text=True).stdout
+        return [str(i) for i, ln in enumerate(listed.splitlines()) if ln.startswith("GPU ")], "nvidia-smi -L"
+    return None
+
+
+def default_workers(c: StudyConfig, runs: list[StudyRun]) -> int:
+    """workers=None: one per visible GPU, at most one per run; 1 on a CPU machine and for runs of several processes."""
+    several_hosts = any(o.split("=")[0] in ("coordinator", "num_processes", "process_id") for o in c.run) \
+        or os.environ.get("MJX_MORPH_NUM_PROCESSES")
+    found = visible_gpus()
+    if several_hosts or found is None:
+        return 1
+    return max(1, min(len(found[0]), len(runs)))
+
+
 def worker_devices(workers: int) -> list[str]:
     """CUDA_VISIBLE_DEVICES of each worker: one GPU each, from those this process may use (its own
     CUDA_VISIBLE_DEVICES, else every GPU nvidia-smi lists). Without nvidia-smi (a CPU machine) the workers share the
     CPU and the names are 0, 1, ..."""
-    visible = os.environ.get("CUDA_VISIBLE_DEVICES")
-    if visible is not None:
-        gpus = [g.strip() for g in visible.split(",") if g.strip()]
-        source = f"CUDA_VISIBLE_DEVICES={visible}"
-    elif shutil.which("nvidia-smi"):
-        listed = subprocess.run(["nvidia-smi", "-L"], capture_output=True, text=True).stdout
-        gpus = [str(i) for i, ln in enumerate(listed.splitlines()) if ln.startswith("GPU ")]
-        source = "nvidia-smi -L"
-    else:
+    found = visible_gpus()
+    if found is None:
         return [str(k) for k in range(workers)]
+    gpus, source = found
     if len(gpus) < workers:
         raise ValueError(f"workers={workers}: only {len(gpus)} GPU(s) visible ({source}); expected at most one "
                          "worker per GPU")
     return gpus[:workers]
 
 
-def worker_command(argv: list[str], k: int) -> list[str]:
-    """The command of worker k: this study's own arguments plus worker=k."""
-    return [sys.executable, "-m", "experiments.study", *argv, f"worker={k}"]
+def worker_command(argv: list[str], workers: int, k: int) -> list[str]:
+    """The command of worker k: this study's own arguments with workers=<workers> worker=k."""
+    own = [a for a in argv if not a.startswith(("workers=", "worker="))]
+    return [sys.executable, "-m", "experiments.study", *own, f"workers={workers}", f"worker={k}"]
 
 
-def run_workers(c: StudyConfig, argv: list[str], runs: list[StudyRun]) -> None:
-    """Start `c.workers` studies, one per GPU, relay their output prefixed [w<k>] and wait for all of them."""
+def run_workers(c: StudyConfig, argv: list[str], runs: list[StudyRun], workers: int) -> None:
+    """Start `workers` studies, one per GPU, relay their output prefixed [w<k>] and wait for all of them."""
     if any(o.split("=")[0] in ("coordinator", "num_processes", "process_id") for o in c.run):
         raise ValueError("workers: runs of several processes (coordinator/num_processes/process_id) cannot be "
                          "spread over workers; use workers=1")
-    gpus = worker_devices(c.workers)
-    for k in range(c.workers):
-        mine = share(runs, c.workers, k)
+    gpus = worker_devices(workers)
+    for k in range(workers):
+        mine = share(runs, workers, k)
         print(f"[study] worker {k} (CUDA_VISIBLE_DEVICES={gpus[k]}): "
               + (", ".join(r.dir.name for r in mine) or "nothing to do"), flush=True)
     lock = threading.Lock()
@@ -164,9 +183,9 @@ def run_workers(c: StudyConfig, argv: list[str], runs: list[StudyRun]) -> None:
                 print(f"[w{k}] {line}", end="", flush=True)
 
     procs, threads = [], []
-    for k in range(c.workers):
+    for k in range(workers):
         env = {**os.environ, "CUDA_VISIBLE_DEVICES": gpus[k], "PYTHONUNBUFFERED": "1"}
-        p = subprocess.Popen(worker_command(argv, k), env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+        p = subprocess.Popen(worker_command(argv, workers, k), env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                              text=True, bufsize=1)
         t = threading.Thread(target=relay, args=(k, p.stdout), daemon=True)
         t.start()
@@ -183,7 +202,7 @@ def run_workers(c: StudyConfig, argv: list[str], runs: list[StudyRun]) -> None:
     failed = [f"worker {k} (exit status {code})" for k, code in enumerate(codes) if code]
     if failed:
         raise ValueError(f"{', '.join(failed)} failed: see its [w<k>] lines above; rerun the same command to go on")
-    print(f"[study] all {c.workers} workers ended", flush=True)
+    print(f"[study] all {workers} workers ended", flush=True)
 
 
 def batches(runs: list[StudyRun], side_by_side: bool) -> list[tuple[list[StudyRun], list[str]]]:
@@ -211,22 +230,24 @@ def batches(runs: list[StudyRun], side_by_side: bool) -> list[tuple[list[StudyRu
 def run_study(c: StudyConfig, argv: Optional[list[str]] = None) -> None:
     if c.time_limit_min is not None and c.time_limit_min <= 0:
         raise ValueError(f"time_limit_min={c.time_limit_min}: expected a positive number of minutes or null")
-    if c.workers < 1 or (c.worker is not None and not 0 <= c.worker < c.workers):
+    if (c.workers is not None and c.workers < 1) or (c.worker is not None and not (
+            c.workers is not None and 0 <= c.worker < c.workers)):
         raise ValueError(f"workers={c.workers}, worker={c.worker}: expected workers >= 1 and worker in "
                          f"0..workers-1 (worker is set by the study for its own processes)")
     runs = plan(c)
+    workers = c.workers if c.workers is not None else default_workers(c, runs)
     if c.worker is not None:
-        runs = share(runs, c.workers, c.worker)
+        runs = share(runs, workers, c.worker)
     configs = [compose_run_config(r.overrides) for r in runs]     # every run's config is checked before any runs
     if c.worker is None or c.dry_run:    # a worker's runs were listed by the study that started it
         for r in runs:
             print(f"python -m experiments.run {' '.join(r.overrides)}   # then evaluate {r.sets}")
-    if c.workers > 1 and c.worker is None:
+    if workers > 1 and c.worker is None:
         if c.dry_run:
-            for k in range(c.workers):
-                print(f"[study] worker {k}: {', '.join(r.dir.name for r in share(runs, c.workers, k))}")
+            for k in range(workers):
+                print(f"[study] worker {k}: {', '.join(r.dir.name for r in share(runs, workers, k))}")
             return
-        return run_workers(c, list(argv or []), runs)
+        return run_workers(c, list(argv or []), runs, workers)
     if c.dry_run:
         return
     checked = set()             # the evaluation sets exist for the runs' robots (before hours of training)

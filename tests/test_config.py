@@ -135,7 +135,7 @@ def test_ab_studies_compose(capsys, unimals, name, archs, runs):
 def test_study_workers_split_the_runs_one_gpu_each(capsys, monkeypatch, unimals):
     """workers=N: every run of the plan goes to exactly one worker, the seeds of a run to different workers; each
     worker is the same study with worker=k on GPU k alone, its lines relayed with [w<k>]; a failed worker fails the
-    study, naming it."""
+    study, naming it. Without workers=, one worker per visible GPU (at most one per run)."""
     from experiments import study
     assert study.main(["ab_precision", "seeds=[0,1]", "workers=2", "dry_run=true"]) == 0
     shares = [ln.split(": ")[1].split(", ") for ln in capsys.readouterr().out.splitlines()
@@ -152,11 +152,19 @@ def test_study_workers_split_the_runs_one_gpu_each(capsys, monkeypatch, unimals)
     monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "4,7")
     fake = ("import os, sys; g = os.environ['CUDA_VISIBLE_DEVICES']; print('gpu', g, sys.argv[-1]); "
             "sys.exit(3 if g == '7' else 0)")
-    monkeypatch.setattr(study, "worker_command", lambda argv, k: [sys.executable, "-c", fake, *argv, f"worker={k}"])
+    monkeypatch.setattr(study, "worker_command",
+                        lambda argv, n, k: [sys.executable, "-c", fake, *argv, f"workers={n}", f"worker={k}"])
     assert study.main(["ab_precision", "only=[fp32]", "archs=[rmomo]", "seeds=[0,1]", "workers=2"]) == 2
     cap = capsys.readouterr()
     assert "[w0] gpu 4 worker=0" in cap.out and "[w1] gpu 7 worker=1" in cap.out
     assert "worker 1 (exit status 3) failed" in cap.err and "worker 0" not in cap.err
+    # no workers=: one per visible GPU, at most one per run
+    assert study.main(["ab_precision", "seeds=[0,1]", "dry_run=true"]) == 0
+    assert sum(ln.startswith("[study] worker") for ln in capsys.readouterr().out.splitlines()) == 2
+    assert study.main(["ab_precision", "only=[fp32]", "archs=[rmomo]", "seeds=[0]", "dry_run=true"]) == 0
+    assert "[study] worker" not in capsys.readouterr().out
+    assert study.worker_command(["ab_precision", "workers=5", "seeds=[0]"], 2, 1)[-3:] == \
+        ["seeds=[0]", "workers=2", "worker=1"]
     monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "0")
     assert study.main(["ab_precision", "only=[fp32]", "archs=[rmomo]", "seeds=[0,1]", "workers=2"]) == 2
     assert "only 1 GPU(s) visible (CUDA_VISIBLE_DEVICES=0)" in capsys.readouterr().err
