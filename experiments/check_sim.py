@@ -138,14 +138,25 @@ def merge_slices(paths: List[str]) -> tuple[list[str], list[list[str]]]:
     return header, merged
 
 
+def print_summary(field: str, values, width: int = 8) -> None:
+    """One line of a column's spread: median, 99th percentile and maximum, in metres."""
+    s = fidelity.summary(list(values))
+    print(f"# {field:{width}s} median {s['median']:.2e}  p99 {s['p99']:.2e}  max {s['max']:.2e} m")
+
+
+def write_rows(path: str, header: list, rows: list) -> None:
+    with open(path, "w", newline="") as fh:
+        csv.writer(fh).writerows([header, *rows])
+    print(f"# per-robot rows written to {path}")
+
+
 def merge(a: CheckSimConfig) -> None:
     header, rows = merge_slices(a.merge)
     col = {k: header.index(k) for k in header}
     alone = [r for r in rows if r[col["mjx_alone"]] != "nan"]
     print(f"# {len(a.merge)} slices: {len(alone)} of {len(rows)} robots run alone in MJX")
     for field in PADDED + ALONE:
-        s = fidelity.summary([float(r[col[field]]) for r in rows])
-        print(f"# {field:11s} median {s['median']:.2e}  p99 {s['p99']:.2e}  max {s['max']:.2e} m")
+        print_summary(field, (float(r[col[field]]) for r in rows), width=11)
     over = {}
     for field in ("error", "mjx_alone"):
         over[field] = [r for r in rows if float(r[col[field]]) > a.tolerance]
@@ -153,9 +164,7 @@ def merge(a: CheckSimConfig) -> None:
         print(f"# {field}: {len(over[field])} of {len(alone) if field in ALONE else len(rows)} over "
               f"{a.tolerance:g} m" + (f": {names}" if names else ""))
     if a.csv:
-        with open(a.csv, "w", newline="") as fh:
-            csv.writer(fh).writerows([header, *rows])
-        print(f"# per-robot rows written to {a.csv}")
+        write_rows(a.csv, header, rows)
     if over["error"]:           # as the check itself: padded robots over the tolerance make the exit status 1
         raise SystemExit(1)
 
@@ -214,16 +223,13 @@ def check(a: CheckSimConfig) -> None:
             print(" ".join([f"{r.name:40s}"] + [f"{getattr(r, f):9.2e}" for f in fields]) + flag)
         rows += [[r.name, it, ls, *(f"{getattr(r, f):.3e}" for f in fields)] for r in res]
         for field in fields:
-            s = fidelity.summary([getattr(r, field) for r in res])
-            print(f"# {field:8s} median {s['median']:.2e}  p99 {s['p99']:.2e}  max {s['max']:.2e} m")
+            print_summary(field, (getattr(r, field) for r in res))
         worst = max(res, key=lambda r: r.error)
         over = [r for r in res if r.error > a.tolerance]
         print(f"# worst {worst.error:.2e} m ({worst.name}); {len(over)} of {len(res)} over {a.tolerance:g} m")
         bad += len(over)
     if a.csv:
-        with open(a.csv, "w", newline="") as fh:
-            csv.writer(fh).writerows([["robot", "iterations", "ls_iterations", *fields], *rows])
-        print(f"# per-robot rows written to {a.csv}")
+        write_rows(a.csv, ["robot", "iterations", "ls_iterations", *fields], rows)
     if bad:
         raise SystemExit(1)
 
