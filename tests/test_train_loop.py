@@ -256,3 +256,16 @@ def test_compile_cache_is_written_and_read_by_a_second_process(tmp_path):
     assert hits1 == 0 and files1, "the first process must write its compiled program"
     assert hits2 >= 1 and files2 == files1, "the second process must read it back"
     assert use_compile_cache(None) is None
+
+
+def test_stall_watchdog_ends_a_stalled_process_and_spares_a_live_one():
+    """An iteration past stall_min (and 20x the slowest) ends the process with exit status 75 and a message naming
+    the rerun; a disarmed watchdog never fires. In a subprocess: the watchdog ends its process."""
+    code = ("import sys, time; from mjx_morph.run.loop import StallWatchdog; w = StallWatchdog(0.002); "
+            "w.arm(6, 0.001 if sys.argv[1] == 'stall' else 0.0); "
+            "time.sleep(3) if sys.argv[1] == 'stall' else (w.disarm(), time.sleep(0.5)); print('survived')")
+    stalled = subprocess.run([sys.executable, "-c", code, "stall"], capture_output=True, text=True, timeout=300)
+    assert stalled.returncode == 75 and "survived" not in stalled.stdout
+    assert "iteration 7 has run" in stalled.stderr and "looks stalled" in stalled.stderr
+    live = subprocess.run([sys.executable, "-c", code, "live"], capture_output=True, text=True, timeout=300)
+    assert live.returncode == 0 and "survived" in live.stdout, live.stderr[-2000:]

@@ -69,6 +69,9 @@ class RunConfig:
                                         # e.g. the first 20 M steps of a 100 M schedule: total_steps=1e8 stop_at=245)
     time_limit_min: Optional[float] = None   # end this invocation after about N minutes (with a checkpoint)
     checkpoint_every: int = 50          # iterations between Orbax checkpoints (and always at the end)
+    stall_min: Optional[float] = 10.0   # end the process (exit status 75) when one iteration after the first runs
+                                        # this many minutes and 20x the slowest before it: a stalled device;
+                                        # null: wait forever
     devices: Optional[int] = None       # devices the envs are sharded over (data parallel, same global batch);
                                         # None: every visible device (of every process)
     coordinator: Optional[str] = None   # several processes (hosts): "host:port" of process 0, or auto (JAX detects
@@ -118,7 +121,7 @@ IDENTITY = ("env.task", "env.context_features", "arch", "model", "robots", "robo
             "ppo.num_envs", "ppo.rollout_len", "ppo.window", "ppo.burn_in", "ppo.minibatch_size", "ppo.sampling")
 #: keys of the loop alone, which a resume may change freely; every other key changes only through allow_changes
 FREE = ("run_dir", "devices", "seeds", "coordinator", "num_processes", "process_id", "stop_after", "stop_at",
-        "time_limit_min", "checkpoint_every", "phase_timing", "fast_compile", "progress",
+        "time_limit_min", "checkpoint_every", "stall_min", "phase_timing", "fast_compile", "progress",
         "compile_cache", "allow_changes", "resume_step", "allow_outside_design_space")
 
 

@@ -28,7 +28,9 @@ progress bar, and its clock decides the time limit. Ctrl-C saves no checkpoint t
 from __future__ import annotations
 
 import dataclasses
+import os
 import sys
+import threading
 import time
 from pathlib import Path
 from typing import Any, Sequence
@@ -62,6 +64,45 @@ class Loop:
     def own(self, state: TrainState) -> TrainState:
         """This run's train state (the state callbacks get holds every seed's when `seeds` are side by side)."""
         return seed_state(state, self.member) if self.seeded else state
+
+
+STALL_EXIT = 75          # the exit status of a process ended by StallWatchdog (EX_TEMPFAIL: try again)
+STALL_FACTOR = 20.0      # ... once an iteration runs this many times the slowest before it (and stall_min)
+
+
+class StallWatchdog:
+    """Ends the process when one iteration runs `minutes` and STALL_FACTOR times the slowest iteration before it.
+    A device that stalls (a collective waiting forever) blocks the loop inside the jitted call, where Python cannot
+    interrupt it; without this the process holds the machine silently until something outside kills it. A rerun
+    resumes from the last checkpoint. The first iteration of an invocation (compilation) is never watched."""
+
+    def __init__(self, minutes: float | None):
+        self.minutes = minutes
+        self._timer: threading.Timer | None = None
+
+    def arm(self, it: int, slowest: float) -> None:
+        self.disarm()
+        if not self.minutes:
+            return
+        limit = max(60.0 * self.minutes, STALL_FACTOR * slowest)
+
+        def fire():
+            before = f"{limit / slowest:.0f}x the slowest before it ({slowest:.1f} s)" if slowest else \
+                "the first iteration timed"
+            sys.stderr.write(f"\n[mjx_morph] iteration {it + 1} has run {limit / 60:.1f} min, {before}: the device "
+                             f"looks stalled. Ending the process (exit status {STALL_EXIT}); a rerun resumes from the "
+                             "last checkpoint (stall_min=null waits instead).\n")
+            sys.stderr.flush()
+            sys.stdout.flush()
+            os._exit(STALL_EXIT)
+        self._timer = threading.Timer(limit, fire)
+        self._timer.daemon = True
+        self._timer.start()
+
+    def disarm(self) -> None:
+        if self._timer is not None:
+            self._timer.cancel()
+            self._timer = None
 
 
 class Callback:
@@ -271,6 +312,7 @@ def train(cfg: Any, experiment: Experiment | None = None, callbacks: Sequence[Ca
         for cb in callbacks:
             cb.on_start(loop)
     it, slowest, reason = start, 0.0, "error"
+    watchdog = StallWatchdog(cfg.stall_min)
     try:
         while it < stop:
             if deadline is not None and it > start and distributed.agree(
@@ -279,7 +321,10 @@ def train(cfg: Any, experiment: Experiment | None = None, callbacks: Sequence[Ca
                 break
             if it == start:
                 print("[mjx_morph] compiling the train step (the first iteration includes it)...", flush=True)
+            if it > start:                 # the first iteration of an invocation compiles: not watched
+                watchdog.arm(it, slowest)
             state, rows = run_iteration(trainer, state, cfg.phase_timing)
+            watchdog.disarm()
             if it == start:
                 print(f"[mjx_morph] first iteration, compilation included: {rows[0]['wall_s']:.0f} s", flush=True)
             it += 1
@@ -295,6 +340,7 @@ def train(cfg: Any, experiment: Experiment | None = None, callbacks: Sequence[Ca
         reason = "interrupted"
         raise
     finally:
+        watchdog.disarm()
         for loop in loops:
             for cb in callbacks:
                 cb.on_stop(loop, state, reason)
