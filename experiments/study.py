@@ -22,8 +22,8 @@ together), unless side_by_side=false. Afterwards: python -m experiments.report r
 Several GPUs of one host: the study runs in one process per visible GPU (`workers=N` for another number, 1 for
 one process), worker k on GPU k alone (CUDA_VISIBLE_DEVICES), each taking every N-th run of the plan (seeds last, so
 two seeds go to two GPUs), training and evaluating its runs with no communication; their output lines come prefixed
-[w<k>]. Independent runs, one per GPU,
-are the measured way to use several GPUs (docs/benchmarks.md, "Several devices"):
+[w<k>]. Independent runs, one per GPU, are the measured way to use several GPUs (docs/benchmarks.md, "Several
+devices"):
 
     python -m experiments.study ab_precision only=[fp32] archs=[modumorph] seeds=[0,1] time_limit_min=9   # 2 GPUs
 
@@ -135,12 +135,15 @@ def visible_gpus() -> tuple[list[str], str] | None:
     return None
 
 
+def several_processes(c: StudyConfig) -> bool:
+    """The runs are given the settings of several processes (hosts) among their experiments.run overrides."""
+    return any(o.split("=")[0] in ("coordinator", "num_processes", "process_id") for o in c.run)
+
+
 def default_workers(c: StudyConfig, runs: list[StudyRun]) -> int:
     """workers=None: one per visible GPU, at most one per run; 1 on a CPU machine and for runs of several processes."""
-    several_hosts = any(o.split("=")[0] in ("coordinator", "num_processes", "process_id") for o in c.run) \
-        or os.environ.get("MJX_MORPH_NUM_PROCESSES")
     found = visible_gpus()
-    if several_hosts or found is None:
+    if several_processes(c) or os.environ.get("MJX_MORPH_NUM_PROCESSES") or found is None:
         return 1
     return max(1, min(len(found[0]), len(runs)))
 
@@ -167,7 +170,7 @@ def worker_command(argv: list[str], workers: int, k: int) -> list[str]:
 
 def run_workers(c: StudyConfig, argv: list[str], runs: list[StudyRun], workers: int) -> None:
     """Start `workers` studies, one per GPU, relay their output prefixed [w<k>] and wait for all of them."""
-    if any(o.split("=")[0] in ("coordinator", "num_processes", "process_id") for o in c.run):
+    if several_processes(c):
         raise ValueError("workers: runs of several processes (coordinator/num_processes/process_id) cannot be "
                          "spread over workers; use workers=1")
     gpus = worker_devices(workers)
@@ -185,8 +188,8 @@ def run_workers(c: StudyConfig, argv: list[str], runs: list[StudyRun], workers: 
     procs, threads = [], []
     for k in range(workers):
         env = {**os.environ, "CUDA_VISIBLE_DEVICES": gpus[k], "PYTHONUNBUFFERED": "1"}
-        p = subprocess.Popen(worker_command(argv, workers, k), env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                             text=True, bufsize=1)
+        p = subprocess.Popen(worker_command(argv, workers, k), env=env, stdout=subprocess.PIPE,
+                             stderr=subprocess.STDOUT, text=True, bufsize=1)
         t = threading.Thread(target=relay, args=(k, p.stdout), daemon=True)
         t.start()
         procs.append(p)

@@ -52,23 +52,22 @@ def run(arch: str, devices: int, iters: int = 3, seed: int = 0, blocks: int | No
         rows.append({k: float(v) for k, v in m.items()})
     shards = len(ts.carry["actor"]["h"].sharding.device_set) if trainer.model.recurrent else \
         len(ts.first.sharding.device_set)
-    return ts, rows, shards
+    return ts, rows, shards, trainer
 
 
 def main(n: int) -> None:
     assert len(jax.devices()) == n, jax.devices()
     out = {}
     for arch in ("rmomo", "metamorph"):
-        one, rows1, s1 = run(arch, 1, blocks=n)      # the minibatches of n devices: n blocks of envs
-        one_trainer = toy_trainer(arch, 1)
-        many, rows_n, s_n = run(arch, n)
+        one, rows1, s1, one_trainer = run(arch, 1, blocks=n)      # the minibatches of n devices: n blocks of envs
+        many, rows_n, s_n, many_trainer = run(arch, n)
         diff = max(float(np.abs(np.asarray(a) - np.asarray(b)).max())
                    for a, b in zip(jax.tree.leaves(one.params), jax.tree.leaves(many.params)))
         env_diff = float(np.abs(np.asarray(one.env.obs.proprio) - np.asarray(many.env.obs.proprio)).max())
         out[arch] = {"param_diff": diff, "env_diff": env_diff, "shards": [s1, s_n],
                      "minibatches": [r["minibatches"] for r in rows1], "minibatches_n": [r["minibatches"] for r in rows_n],
                      "loss": [r["loss"] for r in rows1], "loss_n": [r["loss"] for r in rows_n],
-                     "collectives": update_collectives(toy_trainer(arch, n), many),
+                     "collectives": update_collectives(many_trainer, many),
                      "params": int(sum(np.size(x) for x in jax.tree.leaves(many.params))),
                      "tables": int(sum(np.prod(x.shape) for x in jax.tree.leaves(jax.eval_shape(
                          one_trainer.model.robot_cache, one.params, one_trainer.env.robots))))}

@@ -59,6 +59,12 @@ def _in_precision(method):
     return wrapped
 
 
+def _row_order(batch_major: bool):
+    """[T, B, ...] <-> the order in which the per-sample networks see a sequence's rows: batch-major swaps the two
+    leading axes (where B is sharded over devices a T*B merge with B minor cannot stay sharded), else nothing."""
+    return (lambda x: jnp.swapaxes(x, 0, 1)) if batch_major else (lambda x: x)
+
+
 def _flatten(tree: Any, n_lead: int) -> Any:
     """Merge the first n_lead axes of every leaf."""
     return jax.tree.map(lambda x: x.reshape((-1, *x.shape[n_lead:])), tree)
@@ -216,7 +222,7 @@ class Model:
         if cache is None:
             cache = self.robot_cache(params, robots)
         parts = self._parts(robots, obs_seq, resets)                     # [T, B, ...]
-        order = (lambda x: jnp.swapaxes(x, 0, 1)) if batch_major else (lambda x: x)   # [T, B] <-> rows' order
+        order = _row_order(batch_major)
         win = _flatten(jax.tree.map(lambda x: order(x[burn_in:]), parts), 2)  # [W*B, ...] ([B*W, ...] batch-major)
         rows = (b, w) if batch_major else (w, b)
         outs = {}
@@ -246,11 +252,12 @@ class Model:
         """The cells alone over time-major `parts` [T, B, ...], under stop_gradient (the burn-in);
         `batch_major` as in `sequence`."""
         t, b = resets.shape
-        order = (lambda x: jnp.swapaxes(x, 0, 1)) if batch_major else (lambda x: x)
+        order = _row_order(batch_major)
+        rows = (b, t) if batch_major else (t, b)
         flat = _flatten(jax.tree.map(order, parts), 2)
         xg = {name: order(jax.lax.stop_gradient(
                   net.apply({"params": params[name]}, flat, cache[name], method="pre")["xg"]
-              ).reshape(*((b, t) if batch_major else (t, b)), NUM_TOKENS, -1)) for name, net in self.nets.items()}
+              ).reshape(*rows, NUM_TOKENS, -1)) for name, net in self.nets.items()}
         carry, _ = self._scan(params, carry0, xg, resets, parts["node_mask"])
         return jax.lax.stop_gradient(carry)
 

@@ -176,6 +176,8 @@ class Trainer:
         self.num_seeds = None if seeds is None else int(seeds)
         self.mesh = device_mesh(devices, config.num_envs, self.num_seeds)
         self.blocks = minibatch_blocks(config, self.mb_windows, 1 if self.mesh is None else self.mesh.shape["env"])
+        # with the envs sharded, the networks take a window's rows batch-major so the batch stays sharded
+        self.batch_major = self.mesh is not None
         opts = dict(compiler_options=FAST_COMPILE) if fast_compile else {}
         seeded = self.num_seeds is not None
         if self.mesh is None:
@@ -188,8 +190,7 @@ class Trainer:
             bt = NamedSharding(self.mesh, P("seed", None, "env") if seeded else P(None, "env"))
             rep = NamedSharding(self.mesh, P())               # metrics: on every device, so every process reads them
         st = self._state_sharding
-        each = (lambda f: jax.vmap(f, spmd_axis_name="seed" if self.mesh is not None else None)) if seeded \
-            else (lambda f: f)
+        each = jax.vmap if seeded else (lambda f: f)
         self.iteration = jit(each(self._iteration), out=(st, rep))
         self.rollout = jit(each(self._rollout), out=(st, bt, rep))
         self.update = jit(each(self._update), out=(st, rep))
@@ -264,7 +265,7 @@ class Trainer:
         # The acting state at the rollout start is re-derived by the same burn-in over the tail that training will
         # run, with the current parameters: acting and training then see identical states (ratio exactly 1).
         carry = self.model.advance(ts.params, self.env.robots, ts.tail_obs, ts.tail_carry, ts.tail_first,
-                                   cache=cache, batch_major=self.mesh is not None) if b else ts.carry
+                                   cache=cache, batch_major=self.batch_major) if b else ts.carry
         c0 = ActCarry(ts.env, carry, ts.first, ts.obs_rms, ts.rew)
         keys = jax.random.split(k_roll, cfg.rollout_len).reshape(self.num_windows, cfg.window, -1)
         save_at = w - b if b else w          # the next window's burn-in starts after w - b steps of this one
@@ -338,22 +339,14 @@ class Trainer:
         first = blocked(batch.first, t_seq)
         carry0 = jax.tree.map(blocked_start, batch.starts)
         pick = lambda x: blocked(x, t_win)
-        mb = Minibatch(obs, first, carry0, pick(batch.action), pick(batch.logp), pick(batch.value),
-                       pick(batch.adv), pick(batch.ret))
-        if self.mesh is None:
-            return mb
-        # the windows axis stays where the blocks are (XLA would otherwise gather the minibatch onto every device
-        # and compute it there in full, as it did for the recurrent models)
-        along = lambda axis: lambda x: jax.lax.with_sharding_constraint(
-            x, NamedSharding(self.mesh, P(*([None] * axis), "env")))
-        return mb._replace(**{f: jax.tree.map(along(0 if f == "carry0" else 1), getattr(mb, f))
-                              for f in mb._fields})
+        return Minibatch(obs, first, carry0, pick(batch.action), pick(batch.logp), pick(batch.value),
+                         pick(batch.adv), pick(batch.ret))
 
     def _loss(self, params, batch: Batch, ids):
         mb = self._minibatch(batch, ids)
         model, robots = self.model, self.env.robots
         mu, value, _ = model.sequence(params, robots, mb.obs, mb.carry0, mb.first, burn_in=self.cfg.burn_in,
-                                      batch_major=self.mesh is not None)
+                                      batch_major=self.batch_major)
         act_mask = robots.act_mask[mb.obs.robot[self.cfg.burn_in:]]
         logp = model.log_prob(mu, mb.action, act_mask)
         info = ppo_loss(logp, mb.logp, mb.adv, value, mb.value, mb.ret, model.entropy(mu, act_mask),
@@ -367,7 +360,7 @@ class Trainer:
         ids = jnp.tile(jnp.arange(self.cfg.num_envs * self.num_windows // self.blocks), (self.blocks, 1))
         mb = self._minibatch(batch, ids)
         mu, value, _ = self.model.sequence(params, self.env.robots, mb.obs, mb.carry0, mb.first,
-                                           burn_in=self.cfg.burn_in, batch_major=self.mesh is not None)
+                                           burn_in=self.cfg.burn_in, batch_major=self.batch_major)
         logp = self.model.log_prob(mu, mb.action, self.env.robots.act_mask[mb.obs.robot[self.cfg.burn_in:]])
         return logp, value, mb.logp, mb.value
 
