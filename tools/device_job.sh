@@ -1,0 +1,36 @@
+#!/usr/bin/env bash
+# Work on a lent GPU machine (the workplace's `device` tool), in two steps.
+#
+# Here, once per checkout:   bash tools/device_job.sh prepare
+#   fetches the wheels the GPU machine lacks into .whl/ (../shared/tools/gpu-wheels.sh) and copies the original
+#   robots (../shared/unimals_100) into .gpu/: both git-ignored, both carried (carry: [".whl", ".gpu"]).
+# There, in every call:      bash tools/device_job.sh <name> <command ...>
+#   installs the wheels, points the robots at .gpu/unimals_100, runs the command (XLA's W/I log lines dropped) with
+#   its output in $OUT/<name>.log, then packs the small artefacts of every run under runs/ (config, metrics.csv,
+#   eval/*.json; no checkpoints) into $OUT/<name>-runs.tar.gz: `tar xzf <it> -C results/` unpacks a study's runs
+#   here as results/<study>/<run>/.
+# Example (three calls back to back: a machine left idle 30 s goes back, with runs/ and its checkpoints):
+#   bash tools/device_job.sh fp32 python -m experiments.study ab_precision 'only=[fp32]' 'archs=[modumorph]' \
+#     'seeds=[0,1]' time_limit_min=8.7 -- progress=false
+set -o pipefail
+if [ "$1" = prepare ]; then
+  [ -d ../shared ] || { echo "../shared is missing: clone the project beside it" >&2; exit 2; }
+  ls .whl/*.whl >/dev/null 2>&1 || ../shared/tools/gpu-wheels.sh || exit 1
+  [ -d .gpu/unimals_100 ] || { mkdir -p .gpu && cp -r ../shared/unimals_100 .gpu/; } || exit 1
+  du -shc .whl .gpu | tail -1 | sed 's/total/to carry (64 MiB at most with the checkout)/'
+  exit 0
+fi
+[ $# -ge 2 ] || { echo "usage: bash tools/device_job.sh prepare | <name> <command ...>" >&2; exit 2; }
+[ -n "$OUT" ] || { echo "\$OUT is not set: run this through the device tool" >&2; exit 2; }
+name=$1; shift
+python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl \
+  || { echo "the wheels did not install: carry .whl (bash tools/device_job.sh prepare)" >&2; exit 1; }
+export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1
+[ -d .gpu/unimals_100 ] && export MJX_MORPH_UNIMALS=$PWD/.gpu/unimals_100
+nvidia-smi --query-gpu=index,name,memory.used --format=csv,noheader
+"$@" 2>&1 | grep -v --line-buffered "^[WI]0000 " | tee "$OUT/$name.log"
+rc=${PIPESTATUS[0]}
+dirs=$(ls -d runs/studies/* runs/* 2>/dev/null | grep -vx runs/studies | paste -sd, -)   # a study's runs: <study>/<run>
+[ -n "$dirs" ] && python3 -m experiments.collect "runs=[$dirs]" out="$OUT/$name-runs.tar.gz" 2>&1 | tail -1
+echo "[device_job] $name: exit status $rc"
+exit $rc
