@@ -16,9 +16,18 @@ all seeds together, and `per_run_*` the rates each run sees.
 
 `mode=update` skips the physics: it times the update on a batch of random observations of the right shapes with
 the KL stop off (`ppo.kl_threshold` = inf, so every epoch runs: the worst case), and compiles nothing else, which
-makes comparing learner variants quick. `profile=true` writes a trace of one timed update (TensorBoard's profile
-plugin or Perfetto read it: `profile_dir/plugins/profile/<run>/*.xplane.pb`) and prints the update's top device
-ops by time on stderr (their share and the JAX source of each).
+makes comparing learner variants quick. `mode=rollout` times the rollout alone (physics and acting), for comparing
+physics variants (`env.self_collision=false`, `env.solver_iterations=...`) as the training loop runs them.
+
+`profile=true` writes a trace of one call of each timed phase (TensorBoard's profile plugin or Perfetto read it:
+`profile_dir/<phase>/plugins/profile/<run>/*.xplane.pb`, with the compiled program beside it as `<phase>_hlo.txt`)
+and prints, on stderr, the phase's top device kernels by time with the code each came from (the innermost Python
+frame XLA recorded for it: file, function, line) and the kernel time per stage: the innermost function outside
+MJX's math helpers and the libraries (`mjx/smooth.py:kinematics`, `mjx/solver.py:solve`,
+`mjx/collision_driver.py:collision`, `mjx_morph/nets/layers.py:EncoderLayer.__call__`, ...), which says which step of
+the physics or which layer of the networks the time goes to.
+
+    python -m experiments.bench_train env=ft robots=unimal100/train arch=rmomo mode=rollout profile=true
 """
 from __future__ import annotations
 
@@ -47,10 +56,11 @@ from . import cli, flops
 class BenchTrainConfig(RunConfig):
     bench_iters: int = 4                    # timed iterations per phase, after one warm-up iteration (compilation)
     fused: bool = True                      # also time the fused one-jit iteration (mode=both)
-    mode: str = "both"                      # both: rollout and update; update: the update alone, synthetic batch
-    profile: bool = False                   # write a device trace of one update and print its top ops
+    mode: str = "both"                      # both: rollout and update; update: the update alone, synthetic batch;
+    #                                         rollout: the rollout alone
+    profile: bool = False                   # write a device trace of one call of each phase and print its top ops
     profile_dir: str = "bench_trace"        # where the trace goes
-    top_ops: int = 15                       # how many ops the profile summary lists
+    top_ops: int = 15                       # how many kernels the profile summary lists (and source files)
     compile_cache: Optional[str] = None     # benchmarks measure compilation: never from the cache
 
 
@@ -95,9 +105,9 @@ def synthetic_state_and_batch(trainer: Trainer, key: jax.Array):
     return ts, batch
 
 
-def top_ops(trace_dir: str, n: int) -> tuple[list[dict], list[str]]:
-    """The GPU kernels of a trace by total time (name, milliseconds, share of kernel time, calls), and the names of
-    the device planes and lines (what the trace holds)."""
+def top_ops(trace_dir: str, n: int | None = None) -> tuple[list[dict], list[str]]:
+    """The GPU kernels of a trace by total time (name, milliseconds, share of kernel time, calls; the first n, or
+    all), and the names of the device planes and lines (what the trace holds)."""
     from jax.profiler import ProfileData
     files = sorted(glob.glob(f"{trace_dir}/**/*.xplane.pb", recursive=True))
     if not files:
@@ -121,13 +131,85 @@ def top_ops(trace_dir: str, n: int) -> tuple[list[dict], list[str]]:
             for k, v in rows], seen
 
 
-def hlo_sources(hlo_text: str) -> dict[str, str]:
-    """Kernel name (an HLO instruction's name with '.' as '_') -> its shape and the JAX op it came from."""
+def _hlo_table(hlo_text: str, name: str) -> dict[int, tuple]:
+    """One of the tables at the end of an HLO module's text (FileNames, FunctionNames, FileLocations, StackFrames):
+    id -> its fields (a string, or the numbers of a {key=value ...} record in order)."""
+    m = re.search(rf"^{name}\n(.*?)(?=^[A-Za-z]\w*\n|\Z)", hlo_text, flags=re.M | re.S)
     out = {}
-    for m in re.finditer(r"^\s*(?:ROOT )?%?([\w.\-]+) = (\S+) [^\n]*?metadata=\{op_name=\"([^\"]*)\"", hlo_text,
-                         flags=re.M):
-        out.setdefault(m.group(1).replace(".", "_").replace("-", "_"), f"{m.group(2)[:60]} {m.group(3)[-140:]}")
+    for line in (m.group(1).splitlines() if m else []):
+        if q := re.match(r'^(\d+) "(.*)"$', line):
+            out[int(q.group(1))] = q.group(2)
+        elif q := re.match(r"^(\d+) \{(.*)\}$", line):
+            out[int(q.group(1))] = tuple(int(v) for v in re.findall(r"=(\d+)", q.group(2)))
     return out
+
+
+def short_path(path: str) -> str:
+    """A source file as the profile groups it: `mjx/solver.py`, `mjx_morph/nets/layers.py`, `flax/linen/...`."""
+    for marker, prefix in (("/mujoco/mjx/_src/", "mjx/"), ("/site-packages/", ""), ("/mjx_morph/", "mjx_morph/"),
+                           ("/experiments/", "experiments/"), ("/tests/", "tests/")):
+        if marker in path:
+            return prefix + path.rsplit(marker, 1)[1]
+    return path.rsplit("/", 1)[-1]
+
+
+#: source files whose functions serve every stage (MJX's math, tree scans and Jacobians; JAX and Flax internals): a
+#: kernel is attributed to the innermost frame outside them
+HELPER_FILES = ("mjx/math.py", "mjx/scan.py", "mjx/support.py")
+
+
+def _is_helper(file: str) -> bool:
+    return file in HELPER_FILES or not file.startswith(("mjx/", "mjx_morph/", "experiments/", "tests/"))
+
+
+def hlo_sources(hlo_text: str) -> dict[str, dict]:
+    """Kernel name (an HLO instruction's name with '.' and '-' as '_') -> its result shape ("shape"), the JAX op it
+    came from ("jax_op"), and, when the module carries its stack-frame tables, the Python frames XLA recorded for
+    it ("stack": file:function:line from the innermost outwards, at most 16; "where": the innermost) and the stage it belongs to ("stage": file:function of the
+    innermost frame outside HELPER_FILES and the libraries, e.g. `mjx/smooth.py:kinematics`)."""
+    files, funcs = _hlo_table(hlo_text, "FileNames"), _hlo_table(hlo_text, "FunctionNames")
+    locations, frames = _hlo_table(hlo_text, "FileLocations"), _hlo_table(hlo_text, "StackFrames")
+
+    def chain(frame: int, depth: int = 16) -> list[tuple[str, str, int]]:
+        """(file, function, line) from the innermost frame outwards. XLA prints a frame's parent as its id + 1
+        (0: none)."""
+        out, seen = [], set()
+        while frame in frames and frame not in seen and len(out) < depth:
+            seen.add(frame)
+            location_id, parent = frames[frame][:2]
+            loc = locations.get(location_id)
+            if loc:
+                out.append((short_path(files.get(loc[0], "?")), funcs.get(loc[1], "?"), loc[2]))
+            frame = parent - 1
+        return out
+
+    out = {}
+    for m in re.finditer(r"^\s*(?:ROOT )?%?([\w.\-]+) = (\S+) [^\n]*?metadata=\{([^}]*)\}", hlo_text, flags=re.M):
+        name = m.group(1).replace(".", "_").replace("-", "_")
+        if name in out:
+            continue
+        op = re.search(r'op_name="([^"]*)"', m.group(3))
+        rec = {"shape": m.group(2)[:60], "jax_op": op.group(1)[-140:] if op else "", "where": "", "stage": ""}
+        frame = re.search(r"stack_frame_id=(\d+)", m.group(3))
+        frames_out = chain(int(frame.group(1))) if frame else []
+        if frames_out:
+            rec["stack"] = [":".join(map(str, f)) for f in frames_out]
+            rec["where"] = rec["stack"][0]
+            file, func, _ = next((f for f in frames_out if not _is_helper(f[0])), frames_out[0])
+            rec["stage"] = f"{file}:{func.split('.<locals>')[0]}"
+        out[name] = rec
+    return out
+
+
+def time_by_stage(ops: list[dict], sources: dict[str, dict]) -> list[dict]:
+    """Kernel time summed per stage (`hlo_sources`; kernels without a recorded frame: "(none)"), largest first."""
+    per = defaultdict(lambda: {"ms": 0.0, "share": 0.0, "kernels": 0})
+    for o in ops:
+        rec = per[sources.get(o["op"], {}).get("stage") or "(none)"]
+        rec["ms"] += o["ms"]
+        rec["share"] += o["share"]
+        rec["kernels"] += 1
+    return [{"stage": k, **v} for k, v in sorted(per.items(), key=lambda kv: -kv[1]["ms"])]
 
 
 def _flops_out(out: dict, trainer: Trainer, ts, batch, update_s: float, precision: str) -> None:
@@ -145,30 +227,34 @@ def _flops_out(out: dict, trainer: Trainer, ts, batch, update_s: float, precisio
     out["flops_source"] = "matmul FLOPs counted on the jaxpr (experiments/flops.py), all epochs"
 
 
-def _profile(cfg: BenchTrainConfig, trainer: Trainer, ts, batch, out: dict) -> None:
-    note(f"profiling one update into {cfg.profile_dir} ...")
-    with jax.profiler.trace(cfg.profile_dir):
-        ts2, _ = trainer.update(ts, batch)
-        jax.block_until_ready(ts2.params)
-    ops, planes = top_ops(cfg.profile_dir, cfg.top_ops)
-    hlo = trainer.update.lower(ts, batch).compile().as_text()
-    Path(cfg.profile_dir).mkdir(parents=True, exist_ok=True)
-    (Path(cfg.profile_dir) / "update_hlo.txt").write_text(hlo)
+def _profile(cfg: BenchTrainConfig, phase: str, fn, args: tuple, out: dict) -> None:
+    """Trace one call of the jitted `fn(*args)` into profile_dir/<phase>; its top kernels and time per source file go
+    to out["profile"][phase] and to stderr."""
+    trace_dir = Path(cfg.profile_dir) / phase
+    note(f"profiling one {phase} into {trace_dir} ...")
+    with jax.profiler.trace(str(trace_dir)):
+        jax.block_until_ready(fn(*args))
+    ops, planes = top_ops(str(trace_dir))
+    hlo = fn.lower(*args).compile().as_text()
+    (Path(cfg.profile_dir) / f"{phase}_hlo.txt").write_text(hlo)
     sources = hlo_sources(hlo)
-    for o in ops:
-        o["source"] = sources.get(o["op"], "")
-    out["profile_dir"] = cfg.profile_dir
-    out["top_ops"] = ops
-    out["trace_planes"] = planes
+    top = [{**o, **sources.get(o["op"], {})} for o in ops[:cfg.top_ops]]
+    stages = time_by_stage(ops, sources)[:cfg.top_ops]
+    out.setdefault("profile", {})[phase] = {"dir": str(trace_dir), "top_ops": top, "by_stage": stages,
+                                            "trace_planes": planes}
     if not ops:
         note("no device kernels in the trace (a CPU run?): open it in TensorBoard or Perfetto")
-    for o in ops:
-        note(f"{o['share']:6.1%} {o['ms']:9.2f} ms {o['calls']:7d}x  {o['op'][:36]:36s} {o['source']}")
+        return
+    for o in top:
+        note(f"{phase} {o['share']:6.1%} {o['ms']:9.2f} ms {o['calls']:7d}x  {o['op'][:36]:36s} "
+             f"{o.get('where') or o.get('jax_op', '')}")
+    for st in stages:
+        note(f"{phase} {st['share']:6.1%} {st['ms']:9.2f} ms {st['kernels']:5d} kernels  {st['stage']}")
 
 
 def bench(cfg: BenchTrainConfig) -> None:
-    if cfg.mode not in ("both", "update"):
-        raise ValueError(f"mode={cfg.mode!r}: expected both or update")
+    if cfg.mode not in ("both", "update", "rollout"):
+        raise ValueError(f"mode={cfg.mode!r}: expected both, update or rollout")
     if cfg.mode == "update":
         cfg = dataclasses.replace(cfg, ppo=dataclasses.replace(cfg.ppo, kl_threshold=math.inf))
     t0 = time.perf_counter()
@@ -210,17 +296,22 @@ def bench(cfg: BenchTrainConfig) -> None:
         ts = jax.block_until_ready(trainer.init(seed_keys(cfg.seeds) if cfg.seeds else jax.random.PRNGKey(cfg.seed)))
         init_s = time.perf_counter() - t0
 
+        rollout_only = cfg.mode == "rollout"
+
         def one_iteration(ts):
             t0 = time.perf_counter()
             ts, batch, _ = trainer.rollout(ts)
             jax.block_until_ready(batch)
             t1 = time.perf_counter()
+            if rollout_only:
+                return ts, batch, None, t1 - t0, 0.0
             ts, m = trainer.update(ts, batch)
             jax.block_until_ready(ts.params)
             return ts, batch, m, t1 - t0, time.perf_counter() - t1
 
+        phases = "the rollout" if rollout_only else "the rollout and the update"
         note(f"{model.arch} on {cfg.env.task}: built in {build_s:.0f} s, initial state {init_s:.0f} s; compiling "
-             f"the rollout and the update (the first iteration)...")
+             f"{phases} (the first iteration)...")
         ts, batch, _, compile_rollout, compile_update = one_iteration(ts)  # the first call compiles both phases
         note(f"compiled ({compile_rollout:.0f} s + {compile_update:.0f} s); timing {cfg.bench_iters} iterations...")
         roll, upd, epochs = [], [], []
@@ -228,12 +319,22 @@ def bench(cfg: BenchTrainConfig) -> None:
             ts, batch, m, r, u = one_iteration(ts)
             roll.append(r)
             upd.append(u)
-            epochs.append(float(np.mean(m["epochs_run"])))
+            if m is not None:
+                epochs.append(float(np.mean(m["epochs_run"])))
+        out.update(rollout_sps=steps / np.median(roll),
+                   compile_s={"build": build_s, "init": init_s, "rollout": compile_rollout})
+        if rollout_only:
+            out["peak_memory_gb"] = _memory_gb()
+            if cfg.profile:
+                _profile(cfg, "rollout", trainer.rollout, (ts,), out)
+            print(json.dumps(out), flush=True)
+            return
         med = float(np.median(upd))
-        out.update(rollout_sps=steps / np.median(roll), update_sps=steps / med, update_s=med,
-                   end_to_end_sps=steps / (np.median(roll) + med),
-                   epochs_run_mean=float(np.mean(epochs)), update_s_per_epoch=med / max(np.mean(epochs), 1e-9),
-                   compile_s={"build": build_s, "init": init_s, "rollout": compile_rollout, "update": compile_update})
+        out.update(update_sps=steps / med, update_s=med, end_to_end_sps=steps / (np.median(roll) + med),
+                   epochs_run_mean=float(np.mean(epochs)), update_s_per_epoch=med / max(np.mean(epochs), 1e-9))
+        out["compile_s"]["update"] = compile_update
+        if cfg.profile:
+            _profile(cfg, "rollout", trainer.rollout, (ts,), out)
         if cfg.fused:
             note("compiling and timing the fused iteration...")
             t0 = time.perf_counter()
@@ -255,7 +356,7 @@ def bench(cfg: BenchTrainConfig) -> None:
     _flops_out(out, trainer, ts, batch, med / max(out["epochs_run_mean"] / pc.epochs, 1e-9), cfg.precision)
     out["peak_memory_gb"] = _memory_gb()
     if cfg.profile:
-        _profile(cfg, trainer, ts, batch, out)
+        _profile(cfg, "update", trainer.update, (ts, batch), out)
     print(json.dumps(out), flush=True)
 
 
