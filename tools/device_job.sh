@@ -5,6 +5,7 @@
 #   fetches the wheels the GPU machine lacks into .whl/ (../shared/tools/gpu-wheels.sh) and copies the original
 #   robots (../shared/unimals_100) into .gpu/: both git-ignored, both carried (carry: [".whl", ".gpu"]).
 # There, in every call:      bash tools/device_job.sh <name> <command ...>
+#   (within DEVICE_JOB_LIMIT_S, default 560 s of the call's 600: then Ctrl-C, so that a run saves a checkpoint)
 #   installs the wheels, points the robots at .gpu/unimals_100, runs the command (XLA's W/I log lines dropped) with
 #   its output in $OUT/<name>.log, then packs the small artefacts of every run under runs/ (config, metrics.csv,
 #   eval/*.json; no checkpoints) into $OUT/<name>-runs.tar.gz: `tar xzf <it> -C results/` unpacks a study's runs
@@ -28,8 +29,12 @@ python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upg
 export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1
 [ -d .gpu/unimals_100 ] && export MJX_MORPH_UNIMALS=$PWD/.gpu/unimals_100
 nvidia-smi --query-gpu=index,name,memory.used --format=csv,noheader
-"$@" 2>&1 | grep -v --line-buffered "^[WI]0000 " | tee "$OUT/$name.log"
+# the device tool kills a call at its limit (600 s) and nothing comes back from a killed call: interrupt the command
+# first (Ctrl-C: a run saves a checkpoint, a study waits for its workers to), leaving time to bring the artefacts home
+left=$(( ${DEVICE_JOB_LIMIT_S:-560} - SECONDS ))
+timeout -s INT -k 20 $left "$@" 2>&1 | grep -v --line-buffered "^[WI]0000 " | tee "$OUT/$name.log"
 rc=${PIPESTATUS[0]}
+[ $rc -eq 124 ] && echo "[device_job] $name: interrupted after ${DEVICE_JOB_LIMIT_S:-560} s of the call (DEVICE_JOB_LIMIT_S)"
 dirs=$(ls -d runs/studies/* runs/* 2>/dev/null | grep -vx runs/studies | paste -sd, -)   # a study's runs: <study>/<run>
 [ -n "$dirs" ] && python3 -m experiments.collect "runs=[$dirs]" out="$OUT/$name-runs.tar.gz" 2>&1 | tail -1
 echo "[device_job] $name: exit status $rc"
