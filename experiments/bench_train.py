@@ -35,6 +35,7 @@ import dataclasses
 import glob
 import json
 import math
+import os
 import re
 import sys
 import time
@@ -267,7 +268,8 @@ def bench(cfg: BenchTrainConfig) -> None:
     out = {"arch": model.arch, "seeds": runs, "env": cfg.env.task, "robots": robots, "num_robots": env.num_robots,
            "device": jax.devices()[0].device_kind, "precision": cfg.precision, "mode": cfg.mode,
            "self_collision": cfg.env.self_collision, "num_envs": pc.num_envs, "rollout_len": pc.rollout_len,
-           "minibatch_size": pc.minibatch_size, "steps_per_iter": pc.steps_per_iter, "params": model.num_params()}
+           "minibatch_size": pc.minibatch_size, "steps_per_iter": pc.steps_per_iter, "params": model.num_params(),
+           "xla_flags": os.environ.get("XLA_FLAGS", "")}
 
     if cfg.mode == "update":
         t0 = time.perf_counter()
