@@ -704,3 +704,23 @@ def test_params_cli():
     bad = subprocess.run([sys.executable, "-m", "experiments.params", "env=ft", "no_such_key=1"], cwd=ROOT,
                          capture_output=True, text=True, timeout=300)
     assert bad.returncode != 0 and "no_such_key" in bad.stderr
+
+
+@pytest.mark.parametrize("arch", ["metamorph", "rmemo"])
+def test_attention_through_dot_product_attention_is_the_same_function(arch):
+    """attention=xla (jax.nn.dot_product_attention, no head transposes) gives the default einsum attention's actions and
+    values, padded limbs included, in float32; the flag is refused where there is no self-attention, and an unknown
+    value is refused by name."""
+    model, robots, params, _, seq = setup(arch)
+    other, _, params2, _, seq2 = setup(arch, flags=(("attention", "xla"),))
+    assert jax.tree.structure(params) == jax.tree.structure(params2)
+    obs, resets, carry = make_obs(4, (T, B)), random_resets(4), random_carry(model, 4)
+    mu1, v1, c1 = seq(params, robots, obs, carry, resets, burn_in=0)
+    mu2, v2, c2 = seq2(params, robots, obs, carry, resets, burn_in=0)
+    assert_close(mu1, mu2)
+    assert_close(v1, v2)
+    assert_tree_close(c1, c2)
+    with pytest.raises(ValueError, match="inapplicable"):
+        make_model("modumorph", hfield=False, decoder_dims=[], attention="xla")
+    with pytest.raises(ValueError, match="attention='flash'; expected one of einsum, xla, cudnn"):
+        make_model("metamorph", hfield=False, decoder_dims=[], attention="flash")

@@ -117,17 +117,35 @@ def attention_probs(q: jax.Array, k: jax.Array, key_mask: jax.Array, num_heads: 
     return jax.nn.softmax(logits, axis=-1)
 
 
+#: how ordinary self-attention is computed (speed only, the same function): "einsum" (ours: heads split to [H, T, Dh],
+#: float32 logits, `attention_probs`), "xla" / "cudnn" (`jax.nn.dot_product_attention` on [T, H, Dh] without head
+#: transposes; cuDNN's fused kernel needs a GPU and bf16)
+ATTENTION = ("einsum", "xla", "cudnn")
+
+
+def dot_product_attention(q: jax.Array, k: jax.Array, v: jax.Array, key_mask: jax.Array, num_heads: int,
+                          implementation: str) -> jax.Array:
+    """Self-attention through `jax.nn.dot_product_attention`: q, k, v [..., T, D], key_mask [..., T] -> [..., T, D]."""
+    *lead, t, d = q.shape
+    heads = lambda x: x.reshape(-1, t, num_heads, d // num_heads)
+    mask = key_mask.reshape(-1, 1, 1, t)                 # (batch, heads, queries, keys)
+    out = jax.nn.dot_product_attention(heads(q), heads(k), heads(v), mask=mask, implementation=implementation)
+    return out.reshape(*lead, t, d)
+
+
 class EncoderLayer(nn.Module):
     """Pre-norm encoder layer:  x += MHA(LN1(x)) ;  x += W2 ReLU(W1 LN2(x) + b1) + b2.
 
     `fixed=True` (ModuMorph): queries and keys are `norm_context(c_fa) W_{q,k}`, only the values come from
     `LN1(x)`. The probabilities then depend on the robot alone; `fixed_probs` computes them once per robot
-    and `__call__` takes them (gathered per sample) instead of a key mask."""
+    and `__call__` takes them (gathered per sample) instead of a key mask. `attention` (ordinary attention only):
+    one of ATTENTION."""
     d_model: int
     num_heads: int
     ffn_dim: int
     fixed: bool = False
     dtype: Dtype = None
+    attention: str = "einsum"
 
     def setup(self):
         d = self.d_model
@@ -165,8 +183,14 @@ class EncoderLayer(nn.Module):
         else:
             y, w, b = cast(self.dtype, y, self.in_proj_kernel, self.in_proj_bias)
             q, k, v = jnp.split(y @ w + b, 3, axis=-1)
+            if self.attention != "einsum":
+                x = x + self.out_proj(dot_product_attention(q, k, v, attn, self.num_heads, self.attention))
+                return self._feed_forward(x)
             probs = attention_probs(q, k, attn, self.num_heads)
         out = jnp.einsum("...hqk,...hkd->...hqd", probs.astype(v.dtype), _split_heads(v, self.num_heads))
         x = x + self.out_proj(_merge_heads(out))
+        return self._feed_forward(x)
+
+    def _feed_forward(self, x: jax.Array) -> jax.Array:
         y = self.norm2(x)
         return x + self.linear2(nn.relu(self.linear1(y)))

@@ -78,6 +78,7 @@ class NetConfig:
     hfield_dims: tuple[int, ...] = (64, 64)
     decoder_dims: tuple[int, ...] = ()
     precision: str = DEFAULT_PRECISION   # fp32 | tf32 | bf16 (precision.py)
+    attention: str = "einsum"        # base "meta": how self-attention is computed (layers.ATTENTION; speed only)
 
     @property
     def dtype(self):
@@ -151,7 +152,7 @@ class PolicyNet(nn.Module):
             self.cell = CELLS[c.cell](d, d, dtype=dt)
         if c.plus_mlp:
             self.plus = MLP([c.plus_hidden, d], dtype=dt)
-        self.layers = [EncoderLayer(d, c.num_heads, c.ffn_dim, fixed=modu, dtype=dt) for _ in range(c.num_layers)]
+        self.layers = [EncoderLayer(d, c.num_heads, c.ffn_dim, fixed=modu, dtype=dt, attention=c.attention) for _ in range(c.num_layers)]
         if c.hfield:
             # MLPObsEncoder: ReLU after every layer
             self.hfield_encoder = MLP(list(c.hfield_dims), final_relu=True, dtype=dt)

@@ -38,6 +38,8 @@ Design choices where the original papers and code leave a gap, all overridable b
 - The transformer layers of one network start equal (`clone_layer_init`), as PyTorch's TransformerEncoder
   deep-copies one initialised layer; actor and critic are initialised independently.
 - GRU keeps PyTorch's two bias vectors, 3H(I + H + 2) parameters.
+- `attention=xla|cudnn` (metamorph, rmemo) computes the same self-attention through `jax.nn.dot_product_attention`,
+  without our head transposes: a speed option, equal to the default `einsum` to float rounding (tests/test_nets.py).
 """
 from __future__ import annotations
 
@@ -45,6 +47,7 @@ import dataclasses
 from typing import Any, List, Optional, Sequence
 
 from . import precision as _precision
+from .layers import ATTENTION
 from .model import Model
 from .network import EMBED_INPUT_DIMS, NetConfig
 
@@ -103,6 +106,7 @@ class ModelOptions:
     clip_prev_action: Optional[bool] = None
     clone_layer_init: Optional[bool] = None
     scan_unroll: Optional[int] = None       # recurrent cell: time steps per scan iteration (speed only, same result)
+    attention: Optional[str] = None         # self-attention (metamorph, rmemo): einsum | xla | cudnn (speed only)
 
     def overrides(self) -> dict[str, Any]:
         """The keys that are set, as `make_model` keyword arguments."""
@@ -117,7 +121,7 @@ def _allowed(arch: str) -> set[str]:
         if s.get("cell_site", "base") == "base":
             keys |= {"cell_residual", "scale_after_cell", "embed_input"}
     if s["base"] == "meta":
-        keys.add("context_mlp")
+        keys |= {"context_mlp", "attention"}
     if not s.get("cell"):
         keys.add("embed_input")
     return keys
@@ -132,7 +136,7 @@ def make_model(arch: str, *, hfield: bool, decoder_dims: Sequence[int] = (), pre
     `overrides`: sizes (d_model, num_layers,
     num_heads, ffn_dim, hidden (= d_model), plus_hidden, hfield_dims, hfield_size) and flags (context_mlp,
     cell_residual, scale_after_cell, embed_input, embed_scale, action_std, clip_prev_action,
-    clone_layer_init), each only where it applies; anything else is an error."""
+    clone_layer_init, scan_unroll, attention), each only where it applies; anything else is an error."""
     if arch not in _STRUCTURE:
         raise ValueError(f"unknown architecture {arch!r}; known: {', '.join(ARCHS)}")
     allowed = _allowed(arch)
@@ -145,6 +149,8 @@ def make_model(arch: str, *, hfield: bool, decoder_dims: Sequence[int] = (), pre
     if hidden is not None and hidden != ov.get("d_model", NetConfig.d_model):
         raise ValueError(f"{arch}: the recurrent hidden size ({hidden}) must equal d_model "
                          f"({ov.get('d_model', NetConfig.d_model)}): the cell output is the transformer input")
+    if "attention" in ov and ov["attention"] not in ATTENTION:
+        raise ValueError(f"{arch}: attention={ov['attention']!r}; expected one of {', '.join(ATTENTION)}")
     if "embed_input" in ov and ov["embed_input"] not in EMBED_INPUT_DIMS:
         raise ValueError(f"{arch}: embed_input must be one of {sorted(EMBED_INPUT_DIMS)}")
     if "hfield_dims" in ov:
