@@ -17,7 +17,7 @@ all seeds together, and `per_run_*` the rates each run sees.
 `mode=update` skips the physics: it times the update on a batch of random observations of the right shapes with
 the KL stop off (`ppo.kl_threshold` = inf, so every epoch runs: the worst case), and compiles nothing else, which
 makes comparing learner variants quick. `mode=rollout` times the rollout alone (physics and acting), for comparing
-physics variants (`env.self_collision=false`, `env.solver_iterations=...`) as the training loop runs them.
+physics variants (`env.self_collision=false`, `env.iterations=...`) as the training loop runs them.
 
 `profile=true` writes a trace of one call of each timed phase (TensorBoard's profile plugin or Perfetto read it:
 `profile_dir/<phase>/plugins/profile/<run>/*.xplane.pb`, with the compiled program beside it as `<phase>_hlo.txt`)
@@ -253,6 +253,79 @@ def _profile(cfg: BenchTrainConfig, phase: str, fn, args: tuple, out: dict) -> N
         note(f"{phase} {st['share']:6.1%} {st['ms']:9.2f} ms {st['kernels']:5d} kernels  {st['stage']}")
 
 
+def _timed(call, n: int) -> tuple[float, object]:
+    """The median wall time of n calls of `call()` (each waited for until its outputs are ready) and the last
+    outputs."""
+    times, res = [], None
+    for _ in range(n):
+        t0 = time.perf_counter()
+        res = jax.block_until_ready(call())
+        times.append(time.perf_counter() - t0)
+    return float(np.median(times)), res
+
+
+def _update_alone(cfg: BenchTrainConfig, trainer: Trainer, steps: int, build_s: float, out: dict):
+    """mode=update: the update on a synthetic batch, every epoch run."""
+    t0 = time.perf_counter()
+    ts, batch = synthetic_state_and_batch(trainer, jax.random.PRNGKey(cfg.seed))
+    if trainer.num_seeds is not None:
+        ts, batch = stack_seeds([ts] * trainer.num_seeds), stack_seeds([batch] * trainer.num_seeds)
+    jax.block_until_ready(batch)
+    init_s = time.perf_counter() - t0
+    note(f"{trainer.model.arch}: built in {build_s:.0f} s, synthetic batch {init_s:.0f} s; compiling the update...")
+    compile_update, _ = _timed(lambda: trainer.update(ts, batch), 1)
+    note(f"compiled ({compile_update:.0f} s); timing {cfg.bench_iters} updates...")
+    med, (_, m) = _timed(lambda: trainer.update(ts, batch), cfg.bench_iters)
+    out.update(update_sps=steps / med, update_s=med, epochs_run_mean=float(np.mean(m["epochs_run"])),
+               compile_s={"build": build_s, "batch": init_s, "update": compile_update})
+    return ts, batch
+
+
+def _iterations(cfg: BenchTrainConfig, trainer: Trainer, steps: int, build_s: float, out: dict):
+    """mode=both / rollout: real iterations from the initial state, each phase timed as its own jitted call; then
+    (mode=both, fused=true) the fused one-jit iteration."""
+    t0 = time.perf_counter()
+    ts = jax.block_until_ready(trainer.init(seed_keys(cfg.seeds) if cfg.seeds else jax.random.PRNGKey(cfg.seed)))
+    init_s = time.perf_counter() - t0
+    update = cfg.mode == "both"
+
+    def one_iteration(ts):
+        t0 = time.perf_counter()
+        ts, batch, _ = jax.block_until_ready(trainer.rollout(ts))
+        t1 = time.perf_counter()
+        ts, m = jax.block_until_ready(trainer.update(ts, batch)) if update else (ts, None)
+        return ts, batch, m, t1 - t0, time.perf_counter() - t1
+
+    note(f"{trainer.model.arch} on {cfg.env.task}: built in {build_s:.0f} s, initial state {init_s:.0f} s; compiling "
+         f"the rollout{' and the update' if update else ''} (the first iteration)...")
+    ts, batch, _, compile_rollout, compile_update = one_iteration(ts)
+    note(f"compiled ({compile_rollout:.0f} s + {compile_update:.0f} s); timing {cfg.bench_iters} iterations...")
+    roll, upd, epochs = [], [], []
+    for _ in range(cfg.bench_iters):
+        ts, batch, m, r, u = one_iteration(ts)
+        roll.append(r)
+        upd.append(u)
+        epochs.append(float(np.mean(m["epochs_run"])) if update else 0.0)
+    out.update(rollout_sps=steps / np.median(roll),
+               compile_s={"build": build_s, "init": init_s, "rollout": compile_rollout})
+    if not update:
+        return ts, batch
+    med = float(np.median(upd))
+    out.update(update_sps=steps / med, update_s=med, end_to_end_sps=steps / (np.median(roll) + med),
+               epochs_run_mean=float(np.mean(epochs)), update_s_per_epoch=med / max(np.mean(epochs), 1e-9),
+               hours_per_100M=(np.median(roll) + med) * 1e8 / steps / 3600)
+    out["compile_s"]["update"] = compile_update
+    if cfg.fused:
+        note("compiling and timing the fused iteration...")
+        out["compile_s"]["fused"], (ts, _) = _timed(lambda: trainer.iteration(ts), 1)
+        fused, (ts, _) = _timed(lambda: trainer.iteration(ts), cfg.bench_iters)
+        out["fused_sps"] = steps / fused
+    if trainer.num_seeds is not None:
+        out["per_run_end_to_end_sps"] = out["end_to_end_sps"] / trainer.num_seeds
+        out["hours_per_100M_each_run"] = out["hours_per_100M"] * trainer.num_seeds
+    return ts, batch
+
+
 def bench(cfg: BenchTrainConfig) -> None:
     if cfg.mode not in ("both", "update", "rollout"):
         raise ValueError(f"mode={cfg.mode!r}: expected both, update or rollout")
@@ -263,102 +336,23 @@ def bench(cfg: BenchTrainConfig) -> None:
     env, model, trainer, robots = exp.env, exp.model, exp.trainer, exp.robot_set
     build_s = time.perf_counter() - t0
     pc = trainer.cfg
-    runs = len(cfg.seeds) if cfg.seeds else 1
-    steps = pc.steps_per_iter * runs          # env steps of one iteration, all seeds together
-    out = {"arch": model.arch, "seeds": runs, "env": cfg.env.task, "robots": robots, "num_robots": env.num_robots,
-           "device": jax.devices()[0].device_kind, "precision": cfg.precision, "mode": cfg.mode,
-           "self_collision": cfg.env.self_collision, "num_envs": pc.num_envs, "rollout_len": pc.rollout_len,
-           "minibatch_size": pc.minibatch_size, "steps_per_iter": pc.steps_per_iter, "params": model.num_params(),
-           "xla_flags": os.environ.get("XLA_FLAGS", "")}
-
-    if cfg.mode == "update":
-        t0 = time.perf_counter()
-        ts, batch = synthetic_state_and_batch(trainer, jax.random.PRNGKey(cfg.seed))
-        if trainer.num_seeds is not None:
-            ts, batch = stack_seeds([ts] * runs), stack_seeds([batch] * runs)
-        jax.block_until_ready(batch)
-        init_s = time.perf_counter() - t0
-        note(f"{model.arch}: built in {build_s:.0f} s, synthetic batch {init_s:.0f} s; compiling the update...")
-        t0 = time.perf_counter()
-        ts1, m = trainer.update(ts, batch)
-        jax.block_until_ready(ts1.params)
-        compile_update = time.perf_counter() - t0
-        note(f"compiled ({compile_update:.0f} s); timing {cfg.bench_iters} updates...")
-        upd = []
-        for _ in range(cfg.bench_iters):
-            t0 = time.perf_counter()
-            ts1, m = trainer.update(ts, batch)
-            jax.block_until_ready(ts1.params)
-            upd.append(time.perf_counter() - t0)
-        med = float(np.median(upd))
-        out.update(update_sps=steps / med, update_s=med, epochs_run_mean=float(np.mean(m["epochs_run"])),
-                   compile_s={"build": build_s, "batch": init_s, "update": compile_update})
-    else:
-        t0 = time.perf_counter()
-        ts = jax.block_until_ready(trainer.init(seed_keys(cfg.seeds) if cfg.seeds else jax.random.PRNGKey(cfg.seed)))
-        init_s = time.perf_counter() - t0
-
-        rollout_only = cfg.mode == "rollout"
-
-        def one_iteration(ts):
-            t0 = time.perf_counter()
-            ts, batch, _ = trainer.rollout(ts)
-            jax.block_until_ready(batch)
-            t1 = time.perf_counter()
-            if rollout_only:
-                return ts, batch, None, t1 - t0, 0.0
-            ts, m = trainer.update(ts, batch)
-            jax.block_until_ready(ts.params)
-            return ts, batch, m, t1 - t0, time.perf_counter() - t1
-
-        phases = "the rollout" if rollout_only else "the rollout and the update"
-        note(f"{model.arch} on {cfg.env.task}: built in {build_s:.0f} s, initial state {init_s:.0f} s; compiling "
-             f"{phases} (the first iteration)...")
-        ts, batch, _, compile_rollout, compile_update = one_iteration(ts)  # the first call compiles both phases
-        note(f"compiled ({compile_rollout:.0f} s + {compile_update:.0f} s); timing {cfg.bench_iters} iterations...")
-        roll, upd, epochs = [], [], []
-        for _ in range(cfg.bench_iters):
-            ts, batch, m, r, u = one_iteration(ts)
-            roll.append(r)
-            upd.append(u)
-            if m is not None:
-                epochs.append(float(np.mean(m["epochs_run"])))
-        out.update(rollout_sps=steps / np.median(roll),
-                   compile_s={"build": build_s, "init": init_s, "rollout": compile_rollout})
-        if rollout_only:
-            out["peak_memory_gb"] = _memory_gb()
-            if cfg.profile:
-                _profile(cfg, "rollout", trainer.rollout, (ts,), out)
-            print(json.dumps(out), flush=True)
-            return
-        med = float(np.median(upd))
-        out.update(update_sps=steps / med, update_s=med, end_to_end_sps=steps / (np.median(roll) + med),
-                   epochs_run_mean=float(np.mean(epochs)), update_s_per_epoch=med / max(np.mean(epochs), 1e-9))
-        out["compile_s"]["update"] = compile_update
-        if cfg.profile:
-            _profile(cfg, "rollout", trainer.rollout, (ts,), out)
-        if cfg.fused:
-            note("compiling and timing the fused iteration...")
-            t0 = time.perf_counter()
-            ts, _ = trainer.iteration(ts)
-            jax.block_until_ready(ts.params)
-            out["compile_s"]["fused"] = time.perf_counter() - t0
-            times = []
-            for _ in range(cfg.bench_iters):
-                t0 = time.perf_counter()
-                ts, m = trainer.iteration(ts)
-                jax.block_until_ready(ts.params)
-                times.append(time.perf_counter() - t0)
-            out["fused_sps"] = steps / np.median(times)
-        out["hours_per_100M"] = 1e8 / out["end_to_end_sps"] / 3600
-        if runs > 1:
-            out["per_run_end_to_end_sps"] = out["end_to_end_sps"] / runs
-            out["hours_per_100M_each_run"] = out["hours_per_100M"] * runs
-    # the FLOPs of the worst case (every epoch); scaled by the epochs that ran when the KL stop cut the update
-    _flops_out(out, trainer, ts, batch, med / max(out["epochs_run_mean"] / pc.epochs, 1e-9), cfg.precision)
+    steps = pc.steps_per_iter * (trainer.num_seeds or 1)      # env steps of one iteration, all seeds together
+    out = {"arch": model.arch, "seeds": trainer.num_seeds or 1, "env": cfg.env.task, "robots": robots,
+           "num_robots": env.num_robots, "device": jax.devices()[0].device_kind, "precision": cfg.precision,
+           "mode": cfg.mode, "self_collision": cfg.env.self_collision, "num_envs": pc.num_envs,
+           "rollout_len": pc.rollout_len, "minibatch_size": pc.minibatch_size, "steps_per_iter": pc.steps_per_iter,
+           "params": model.num_params(), "xla_flags": os.environ.get("XLA_FLAGS", "")}
+    phases = _update_alone if cfg.mode == "update" else _iterations
+    ts, batch = phases(cfg, trainer, steps, build_s, out)
+    if cfg.mode != "rollout":   # the FLOPs of the worst case (every epoch), scaled by the epochs the KL stop let run
+        _flops_out(out, trainer, ts, batch, out["update_s"] / max(out["epochs_run_mean"] / pc.epochs, 1e-9),
+                   cfg.precision)
     out["peak_memory_gb"] = _memory_gb()
     if cfg.profile:
-        _profile(cfg, "update", trainer.update, (ts, batch), out)
+        if cfg.mode != "update":
+            _profile(cfg, "rollout", trainer.rollout, (ts,), out)
+        if cfg.mode != "rollout":
+            _profile(cfg, "update", trainer.update, (ts, batch), out)
     print(json.dumps(out), flush=True)
 
 
