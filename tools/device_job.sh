@@ -13,6 +13,9 @@
 # Example (three calls back to back: a machine left idle 30 s goes back, with runs/ and its checkpoints):
 #   bash tools/device_job.sh fp32 python -m experiments.study ab_precision 'only=[fp32]' 'archs=[modumorph]' \
 #     'seeds=[0,1]' time_limit_min=8.7 -- progress=false
+#   bash tools/device_job.sh --continue fp32 python -m experiments.study ...    # the second and third calls
+# --continue stops at once (exit status 3) on a machine without runs/: the chain broke, and the command would
+# start the runs again from nothing.
 set -o pipefail
 if [ "$1" = prepare ]; then
   [ -d ../shared ] || { echo "../shared is missing: clone the project beside it" >&2; exit 2; }
@@ -21,9 +24,16 @@ if [ "$1" = prepare ]; then
   du -shc .whl .gpu | tail -1 | sed 's/total/to carry (64 MiB at most with the checkout)/'
   exit 0
 fi
-[ $# -ge 2 ] || { echo "usage: bash tools/device_job.sh prepare | <name> <command ...>" >&2; exit 2; }
+continuing=0
+[ "$1" = --continue ] && { continuing=1; shift; }
+[ $# -ge 2 ] || { echo "usage: bash tools/device_job.sh prepare | [--continue] <name> <command ...>" >&2; exit 2; }
 [ -n "$OUT" ] || { echo "\$OUT is not set: run this through the device tool" >&2; exit 2; }
 name=$1; shift
+if [ $continuing = 1 ] && [ ! -d runs ]; then
+  echo "[device_job] $name: --continue, but runs/ is not here: this is a fresh machine (the warm one went back, and" \
+       "the runs of the earlier calls with it). Nothing was run; the device time left is better spent otherwise." >&2
+  exit 3
+fi
 python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl \
   || { echo "the wheels did not install: carry .whl (bash tools/device_job.sh prepare)" >&2; exit 1; }
 export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1
