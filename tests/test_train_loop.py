@@ -269,3 +269,28 @@ def test_stall_watchdog_ends_a_stalled_process_and_spares_a_live_one():
     assert "iteration 7 has run" in stalled.stderr and "looks stalled" in stalled.stderr
     live = subprocess.run([sys.executable, "-c", code, "live"], capture_output=True, text=True, timeout=300)
     assert live.returncode == 0 and "survived" in live.stdout, live.stderr[-2000:]
+
+
+def test_progress_lines_without_the_bar(capsys):
+    """progress=false: one plain line per `progress_every_min` (not per iteration; counted from the end of the
+    compiling first iteration), after the last of the seeds side by side, with their mean return, the env steps/s of all seeds and the time left at the mean iteration time (the
+    compiling first iteration left out); the default callbacks choose it, or nothing with progress_every_min=null."""
+    from types import SimpleNamespace
+    from mjx_morph.run import ProgressBar, ProgressLines, RunConfig
+    now = [0.0]
+    cb = ProgressLines(1.0, clock=lambda: now[0])
+    loops = [SimpleNamespace(member=m, members=2, start=10, stop=20) for m in range(2)]
+    cb.on_start(loops[0])
+    cb.on_start(loops[1])
+    for it, t in zip(range(11, 16), (100.0, 130.0, 150.0, 170.0, 190.0)):   # 100 s to compile, then 20-30 s each
+        now[0] = t
+        for m, loop in enumerate(loops):
+            cb.on_iteration(loop, None, {"iteration": it, "env_steps": it * 1000, "episode_return": 10.0 * (m + 1),
+                                         "sps": 50.0, "wall_s": 100.0 if it == 11 else t - now[0] + 20.0})
+    lines = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("[mjx_morph] iteration")]
+    assert lines == ["[mjx_morph] iteration 14/20: 14,000 env steps, return 15.0, 100 env steps/s, 2.0 min to "
+                     "iteration 20"]
+    callbacks = lambda **kw: [type(c) for c in default_callbacks(RunConfig(**kw))]
+    assert ProgressBar in callbacks() and ProgressLines not in callbacks()
+    assert ProgressLines in callbacks(progress=False)
+    assert ProgressLines not in callbacks(progress=False, progress_every_min=None)

@@ -82,6 +82,7 @@ class RunConfig:
     phase_timing: bool = True           # rollout and update as two jitted calls, to log env steps/s per phase
     fast_compile: bool = False          # XLA CPU optimisations off: faster compiles, slower steps (tests, smoke)
     progress: bool = True               # progress bar with steps/s and ETA
+    progress_every_min: Optional[float] = 1.0   # with progress=false: a plain progress line every N minutes (null: none)
     compile_cache: Optional[str] = DEFAULT_COMPILE_CACHE   # compiled programs kept across invocations; None: off
     allow_changes: List[str] = dataclasses.field(default_factory=list)
                                         # on a resume: training keys that may differ from the saved config
@@ -101,7 +102,7 @@ class RunConfig:
         positive = {"total_steps": self.total_steps, "checkpoint_every": self.checkpoint_every,
                     "num_robots": self.num_robots, "stop_after": self.stop_after,
                     "time_limit_min": self.time_limit_min, "resume_step": self.resume_step, "devices": self.devices,
-                    "stop_at": self.stop_at}
+                    "stop_at": self.stop_at, "progress_every_min": self.progress_every_min}
         for key, v in positive.items():
             if v is not None and v <= 0:
                 raise ValueError(f"{key}={v}: expected a positive number" + (" or null" if key != "total_steps"
@@ -122,7 +123,7 @@ IDENTITY = ("env.task", "env.context_features", "arch", "model", "robots", "robo
 #: keys of the loop alone, which a resume may change freely; every other key changes only through allow_changes
 FREE = ("run_dir", "devices", "seeds", "coordinator", "num_processes", "process_id", "stop_after", "stop_at",
         "time_limit_min", "checkpoint_every", "stall_min", "phase_timing", "fast_compile", "progress",
-        "compile_cache", "allow_changes", "resume_step", "allow_outside_design_space")
+        "progress_every_min", "compile_cache", "allow_changes", "resume_step", "allow_outside_design_space")
 
 
 class ConfigError(ValueError):

@@ -150,6 +150,38 @@ class ProgressBar(Callback):
             self.bar.close()
 
 
+class ProgressLines(Callback):
+    """Where there is no bar (`progress=false`: logs, pipes, study workers), one plain line every `minutes`: the
+    iteration, env steps, the mean episode return (over the seeds side by side), env steps/s (all seeds) and the
+    time to the invocation's last iteration at the mean iteration time so far. `clock` is for tests."""
+
+    def __init__(self, minutes: float, clock=time.monotonic):
+        self.seconds, self.clock = 60.0 * minutes, clock
+
+    def on_start(self, loop):
+        if loop.member == 0:
+            self.last, self.returns, self.walls = self.clock(), [], []
+
+    def on_iteration(self, loop, state, row):
+        if loop.member == 0:
+            self.returns = []
+            if int(row["iteration"]) > loop.start + 1:          # the first iteration of an invocation compiles
+                self.walls.append(row["wall_s"])
+        self.returns.append(row["episode_return"])
+        now = self.clock()
+        if int(row["iteration"]) == loop.start + 1:            # its own line says when compilation ended
+            self.last = now
+        if loop.member < loop.members - 1 or now - self.last < self.seconds:
+            return
+        self.last = now
+        it = int(row["iteration"])
+        ret = float(np.nanmean(self.returns)) if np.isfinite(self.returns).any() else float("nan")
+        left = f", {(loop.stop - it) * float(np.mean(self.walls)) / 60.0:.1f} min to iteration {loop.stop}" \
+            if self.walls else ""
+        print(f"[mjx_morph] iteration {it}/{loop.stop}: {int(row['env_steps']):,} env steps, return {ret:.1f}, "
+              f"{row['sps'] * loop.members:,.0f} env steps/s{left}", flush=True)
+
+
 class Checkpoints(Callback):
     """An Orbax checkpoint every `every` iterations, at the invocation's last iteration, and when the invocation
     ends early (time limit, Ctrl-C)."""
@@ -188,7 +220,9 @@ class Summary(Callback):
 
 
 def default_callbacks(cfg: RunConfig) -> list[Callback]:
-    return [MetricsLog(), *([ProgressBar()] if cfg.progress else []), Checkpoints(cfg.checkpoint_every), Summary()]
+    progress = [ProgressBar()] if cfg.progress else [ProgressLines(cfg.progress_every_min)] \
+        if cfg.progress_every_min else []
+    return [MetricsLog(), *progress, Checkpoints(cfg.checkpoint_every), Summary()]
 
 
 def run_iteration(trainer: Trainer, state: TrainState, phase_timing: bool) -> tuple[TrainState, list[dict[str, float]]]:
