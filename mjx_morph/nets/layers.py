@@ -117,6 +117,12 @@ def attention_probs(q: jax.Array, k: jax.Array, key_mask: jax.Array, num_heads: 
     return jax.nn.softmax(logits, axis=-1)
 
 
+def weighted_values(probs: jax.Array, v: jax.Array, num_heads: int) -> jax.Array:
+    """The heads' probability-weighted values, merged: probs [..., H, T, T], v [..., T, D] -> [..., T, D]."""
+    out = jnp.einsum("...hqk,...hkd->...hqd", probs.astype(v.dtype), _split_heads(v, num_heads))
+    return _merge_heads(out)
+
+
 #: how ordinary self-attention is computed (speed only, the same function): "einsum" (ours: heads split to [H, T, Dh],
 #: float32 logits, `attention_probs`), "xla" / "cudnn" (`jax.nn.dot_product_attention` on [T, H, Dh] without head
 #: transposes; cuDNN's fused kernel needs a GPU and bf16)
@@ -178,19 +184,14 @@ class EncoderLayer(nn.Module):
         """x [N, 12, D]; attn = key mask [N, 12] (ordinary) or probabilities [N, H, 12, 12] (fixed)."""
         y = self.norm1(x)
         if self.fixed:
-            probs = attn
-            v = self._proj(y, 2)
+            out = weighted_values(attn, self._proj(y, 2), self.num_heads)
         else:
             y, w, b = cast(self.dtype, y, self.in_proj_kernel, self.in_proj_bias)
             q, k, v = jnp.split(y @ w + b, 3, axis=-1)
-            if self.attention != "einsum":
-                x = x + self.out_proj(dot_product_attention(q, k, v, attn, self.num_heads, self.attention))
-                return self._feed_forward(x)
-            probs = attention_probs(q, k, attn, self.num_heads)
-        out = jnp.einsum("...hqk,...hkd->...hqd", probs.astype(v.dtype), _split_heads(v, self.num_heads))
-        x = x + self.out_proj(_merge_heads(out))
-        return self._feed_forward(x)
-
-    def _feed_forward(self, x: jax.Array) -> jax.Array:
+            if self.attention == "einsum":
+                out = weighted_values(attention_probs(q, k, attn, self.num_heads), v, self.num_heads)
+            else:
+                out = dot_product_attention(q, k, v, attn, self.num_heads, self.attention)
+        x = x + self.out_proj(out)
         y = self.norm2(x)
         return x + self.linear2(nn.relu(self.linear1(y)))

@@ -152,7 +152,8 @@ class PolicyNet(nn.Module):
             self.cell = CELLS[c.cell](d, d, dtype=dt)
         if c.plus_mlp:
             self.plus = MLP([c.plus_hidden, d], dtype=dt)
-        self.layers = [EncoderLayer(d, c.num_heads, c.ffn_dim, fixed=modu, dtype=dt, attention=c.attention) for _ in range(c.num_layers)]
+        self.layers = [EncoderLayer(d, c.num_heads, c.ffn_dim, fixed=modu, dtype=dt, attention=c.attention)
+                       for _ in range(c.num_layers)]
         if c.hfield:
             # MLPObsEncoder: ReLU after every layer
             self.hfield_encoder = MLP(list(c.hfield_dims), final_relu=True, dtype=dt)
