@@ -168,16 +168,10 @@ def worker_command(argv: list[str], workers: int, k: int) -> list[str]:
     return [sys.executable, "-m", "experiments.study", *own, f"workers={workers}", f"worker={k}"]
 
 
-def run_workers(c: StudyConfig, argv: list[str], runs: list[StudyRun], workers: int) -> None:
-    """Start `workers` studies, one per GPU, relay their output prefixed [w<k>] and wait for all of them."""
-    if several_processes(c):
-        raise ValueError("workers: runs of several processes (coordinator/num_processes/process_id) cannot be "
-                         "spread over workers; use workers=1")
-    gpus = worker_devices(workers)
-    for k in range(workers):
-        mine = share(runs, workers, k)
-        print(f"[study] worker {k} (CUDA_VISIBLE_DEVICES={gpus[k]}): "
-              + (", ".join(r.dir.name for r in mine) or "nothing to do"), flush=True)
+def run_workers(argv: list[str], gpus: list[str]) -> None:
+    """Start one study per GPU of `gpus` (worker k on gpus[k]), relay their output prefixed [w<k>] and wait for all
+    of them."""
+    workers = len(gpus)
     lock = threading.Lock()
 
     def relay(k: int, stream) -> None:
@@ -246,11 +240,14 @@ def run_study(c: StudyConfig, argv: Optional[list[str]] = None) -> None:
         for r in runs:
             print(f"python -m experiments.run {' '.join(r.overrides)}   # then evaluate {r.sets}")
     if workers > 1 and c.worker is None:
-        if c.dry_run:
-            for k in range(workers):
-                print(f"[study] worker {k}: {', '.join(r.dir.name for r in share(runs, workers, k))}")
-            return
-        return run_workers(c, list(argv or []), runs, workers)
+        if several_processes(c):
+            raise ValueError("workers: runs of several processes (coordinator/num_processes/process_id) cannot be "
+                             "spread over workers; use workers=1")
+        gpus = worker_devices(workers)
+        for k in range(workers):
+            print(f"[study] worker {k} (CUDA_VISIBLE_DEVICES={gpus[k]}): "
+                  + (", ".join(r.dir.name for r in share(runs, workers, k)) or "nothing to do"), flush=True)
+        return None if c.dry_run else run_workers(list(argv or []), gpus)
     if c.dry_run:
         return
     checked = set()             # the evaluation sets exist for the runs' robots (before hours of training)

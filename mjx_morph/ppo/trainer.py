@@ -325,19 +325,14 @@ class Trainer:
         t_seq = (k * w)[:, None, :] + jnp.arange(b + w)[None, :, None]          # (G, B + W, m) tail+rollout time
         t_win = t_seq[:, b:] - b                                                # (G, W, m) rollout time
 
-        def blocked(x, t):          # x (time, N, ...) -> (len(t), G * m, ...): block i's windows from block i's envs
+        def blocked(x, t):          # x (time, N, ...), t (G, L, m) -> (L, G * m, ...): block i's from block i's envs
             xb = x.reshape(x.shape[0], g, per_block, *x.shape[2:])
             out = jax.vmap(lambda xg, tg, ng: xg[tg, ng[None, :]], in_axes=(1, 0, 0), out_axes=1)(xb, t, n)
             return out.reshape(out.shape[0], g * m, *out.shape[3:])
 
-        def blocked_start(s):       # s (K, N, ...) -> (G * m, ...)
-            sb = s.reshape(s.shape[0], g, per_block, *s.shape[2:])
-            out = jax.vmap(lambda sg, kg, ng: sg[kg, ng], in_axes=(1, 0, 0))(sb, k, n)
-            return out.reshape(g * m, *out.shape[2:])
-
         obs = jax.tree.map(lambda x: blocked(x, t_seq), batch.obs)
         first = blocked(batch.first, t_seq)
-        carry0 = jax.tree.map(blocked_start, batch.starts)
+        carry0 = jax.tree.map(lambda s: blocked(s, k[:, None])[0], batch.starts)     # s (K, N, ...): window k's start
         pick = lambda x: blocked(x, t_win)
         return Minibatch(obs, first, carry0, pick(batch.action), pick(batch.logp), pick(batch.value),
                          pick(batch.adv), pick(batch.ret))

@@ -163,18 +163,18 @@ class ProgressLines(Callback):
             self.last, self.returns, self.walls = self.clock(), [], []
 
     def on_iteration(self, loop, state, row):
+        it, now = int(row["iteration"]), self.clock()
+        compiled = it == loop.start + 1         # an invocation's first iteration compiles; its own line says so
         if loop.member == 0:
             self.returns = []
-            if int(row["iteration"]) > loop.start + 1:          # the first iteration of an invocation compiles
+            if not compiled:
                 self.walls.append(row["wall_s"])
         self.returns.append(row["episode_return"])
-        now = self.clock()
-        if int(row["iteration"]) == loop.start + 1:            # its own line says when compilation ended
+        if compiled:
             self.last = now
         if loop.member < loop.members - 1 or now - self.last < self.seconds:
             return
         self.last = now
-        it = int(row["iteration"])
         ret = float(np.nanmean(self.returns)) if np.isfinite(self.returns).any() else float("nan")
         left = f", {(loop.stop - it) * float(np.mean(self.walls)) / 60.0:.1f} min to iteration {loop.stop}" \
             if self.walls else ""
