@@ -281,21 +281,25 @@ def run_study(c: StudyConfig, argv: Optional[list[str]] = None) -> None:
                       flush=True)
                 return
         # with a time limit, as many (set, run) evaluations as fit, the study file's sets in order (each over the
-        # batch's seeds): every process decides from the same plan and clock, not from files only the main one has
-        jobs = [(s, r) for s in members[0].sets for r in members]
+        # batch's seeds), counting only those not yet evaluated at the run's last checkpoint. Every process takes the
+        # same decision: whether a set is done is read on the main process (the others may not see eval/) and agreed.
+        steps = [RunDir(r.dir).latest_step() for r in members]        # what evaluate_run evaluates
+        jobs, done = [], []
+        for s in members[0].sets:
+            for r, step in zip(members, steps):
+                (done if distributed.agree(evaluated(r.dir, s, step, c.episodes)) else jobs).append((s, r))
+        for r, step in zip(members, steps):
+            if any(q is r for _, q in done):
+                distributed.print_main(f"[study] {r.dir}: {', '.join(s for s, q in done if q is r)} already "
+                                       f"evaluated at checkpoint {step}", flush=True)
         fit = len(jobs) if deadline is None else max(0, int(minutes_left() // EVAL_SET_MIN))
-        if fit == 0:
+        if jobs and fit == 0:
             print(f"[study] time limit: evaluation of {', '.join(str(r.dir) for r in members)} left for the rerun",
                   flush=True)
             return
         if distributed.is_main():
             for r in members:                           # one evaluate_run (one checkpoint load) per run
-                step = RunDir(r.dir).latest_step()      # what evaluate_run evaluates
-                chosen = [s for s, q in jobs[:fit] if q is r]
-                sets = [s for s in chosen if not evaluated(r.dir, s, step, c.episodes)]
-                if sets != chosen:
-                    print(f"[study] {r.dir}: {', '.join(s for s in chosen if s not in sets)} already evaluated at "
-                          f"checkpoint {step}", flush=True)
+                sets = [s for s, q in jobs[:fit] if q is r]
                 if sets:
                     evaluate_run(r.dir, sets, episodes=c.episodes)
         distributed.barrier("evaluated")

@@ -201,6 +201,14 @@ def test_study_time_limit_evaluates_what_fits(capsys, monkeypatch, tmp_path, uni
     assert study.main([*args, "time_limit_min=100"]) == 0
     assert calls == [("ft-rmemo-no_context-s0", ["val", "train"]), ("ft-rmemo-no_context-s1", ["val", "train"])]
     assert "[study] done" in capsys.readouterr().out
+    # sets already evaluated take none of the time: with val done for both seeds, one slot goes to s0's train
+    calls.clear()
+    monkeypatch.setattr(study, "evaluated", lambda d, s, step, episodes: s == "val")
+    assert study.main([*args, f"time_limit_min={1.2 * study.EVAL_SET_MIN}"]) == 0
+    assert calls == [("ft-rmemo-no_context-s0", ["train"])]
+    out = capsys.readouterr().out
+    assert "ft-rmemo-no_context-s1: val already evaluated at checkpoint 245" in out
+    assert "ft-rmemo-no_context-s1: train left for the rerun" in out
 
 
 def test_study_only_selects_runs_and_names_the_known_ones(capsys, unimals):
