@@ -5,14 +5,15 @@
     python -m experiments.study train_size archs=[rmomo] -- preset=smoke robots=gen/train   # extra run overrides
 
 A study file lists `runs` (name -> overrides of experiments.run), and optionally `common` (overrides of every run),
-`archs` and `seeds` (the defaults of archs= and seeds=) and `evaluate` (the sets to evaluate each run on).
+`archs` and `seeds` (the defaults of archs= and seeds=) and `evaluate` (the sets to evaluate each run on, in order;
+`evaluate=[...]` for others, e.g. the zero-shot sets first: `evaluate=[test,variants]`).
 
 Run directories: <out>/<study>/<env>-<arch>-<run>-s<seed> (default out: runs/studies). Each run is an ordinary
 `experiments.run` run: rerunning the study resumes unfinished runs; finished ones are not retrained, and a set
 already evaluated at the run's last checkpoint (eval/<set>.json) is not evaluated again. `only=[a,b]` takes the
 study's runs a and b alone; `time_limit_min=N` ends the invocation after about N minutes of training (the run in
 training checkpoints, runs that did not finish are not evaluated, and of a finished batch only the evaluations that
-fit, EVAL_SET_MIN minutes per set and run, in the study file's order of sets over the seeds; rerun to go on):
+fit, `eval_minutes` per set and run, in the study file's order of sets over the seeds; rerun to go on):
 
     python -m experiments.study ab_rmomo_cell only=[scale_before,scale_after] seeds=[0,1] time_limit_min=9
 
@@ -56,7 +57,14 @@ from . import cli
 DEFAULT_ARCHS = ["rmomo", "modumorph"]
 MIN_TRAIN_MIN = 1.0     # with time_limit_min: do not start (compile) a training with less time than this left
 EVAL_SET_MIN = 2.5      # ... nor the evaluation of one set of one run (~100 robots, compilation included, one GPU:
-                        # 110-136 s for the 100 train robots, 95 s for the 32 val robots on an H100)
+                        # 110-136 s for the 100 train robots, 95 s for the 32 val robots on an H100; 71-80 s and
+                        # 54-57 s on an H200)
+EVAL_VARIANTS_MIN = 4.5 # ... and of the 2400 variants (208 s on an H100, session 3)
+
+
+def eval_minutes(name: str) -> float:
+    """The time a study's time limit sets aside for evaluating set `name` of one run."""
+    return EVAL_VARIANTS_MIN if name == "variants" else EVAL_SET_MIN
 
 
 @dataclasses.dataclass
@@ -67,6 +75,8 @@ class StudyConfig:
     env: EnvConfig = dataclasses.field(default_factory=EnvConfig)   # env=<task> and env.<option>=... for every run
     out: str = "runs/studies"
     episodes: int = 4                   # evaluation episodes per robot
+    evaluate: Optional[List[str]] = None   # the sets to evaluate every run on, in this order (None: the study file's
+                                        # `evaluate`); with a time limit the first come first, e.g. [test,variants]
     dry_run: bool = False               # print the runs and stop
     side_by_side: bool = True           # train the seeds of a run in one program (experiments.run seeds=[...])
     run: List[str] = dataclasses.field(default_factory=list)   # extra experiments.run overrides (after --)
@@ -104,6 +114,7 @@ def plan(c: StudyConfig) -> list[StudyRun]:
     env_over = [f"env={c.env.task}"] + [f"env.{k.name}={getattr(c.env, k.name)}" for k in dataclasses.fields(EnvConfig)
                                          if getattr(c.env, k.name) != getattr(default, k.name)]
     common = list(spec.get("common", []))        # overrides of every run of the study (before each run's own)
+    sets = c.evaluate if c.evaluate is not None else spec.get("evaluate", ["train", "test"])
     runs = []
     for arch in (c.archs if c.archs is not None else spec.get("archs", DEFAULT_ARCHS)):
         for name, overrides in spec["runs"].items():
@@ -113,7 +124,7 @@ def plan(c: StudyConfig) -> list[StudyRun]:
                 d = Path(c.out) / c.name / f"{c.env.task}-{arch}-{name}-s{seed}"
                 runs.append(StudyRun(d, [*env_over, f"arch={arch}", f"seed={seed}", f"run_dir={d}", *common,
                                          *overrides, *c.run],
-                                     list(spec.get("evaluate", ["train", "test"])), (arch, name), seed))
+                                     list(sets), (arch, name), seed))
     return runs
 
 
@@ -292,7 +303,10 @@ def run_study(c: StudyConfig, argv: Optional[list[str]] = None) -> None:
             if any(q is r for _, q in done):
                 distributed.print_main(f"[study] {r.dir}: {', '.join(s for s, q in done if q is r)} already "
                                        f"evaluated at checkpoint {step}", flush=True)
-        fit = len(jobs) if deadline is None else max(0, int(minutes_left() // EVAL_SET_MIN))
+        fit, left = 0, minutes_left()
+        while fit < len(jobs) and left >= eval_minutes(jobs[fit][0]):
+            left -= eval_minutes(jobs[fit][0])
+            fit += 1
         if jobs and fit == 0:
             print(f"[study] time limit: evaluation of {', '.join(str(r.dir) for r in members)} left for the rerun",
                   flush=True)

@@ -209,6 +209,15 @@ def test_study_time_limit_evaluates_what_fits(capsys, monkeypatch, tmp_path, uni
     out = capsys.readouterr().out
     assert "ft-rmemo-no_context-s1: val already evaluated at checkpoint 245" in out
     assert "ft-rmemo-no_context-s1: train left for the rerun" in out
+    # the variants take longer than a set of ~100 robots: time for them and one more set is not time for two more
+    calls.clear()
+    monkeypatch.setattr(study, "evaluated", lambda d, s, step, episodes: False)
+    limit = study.eval_minutes("variants") + 0.5 * study.EVAL_SET_MIN
+    assert 2 * study.EVAL_SET_MIN <= limit
+    assert study.main(["paper", "archs=[rmomo]", "seeds=[0]", "evaluate=[variants,test]", f"out={tmp_path}",
+                       f"time_limit_min={limit}", "--", "stop_at=245"]) == 0
+    assert calls == [("ft-rmomo-main-s0", ["variants"])]
+    assert "ft-rmomo-main-s0: test left for the rerun" in capsys.readouterr().out
 
 
 def test_study_only_selects_runs_and_names_the_known_ones(capsys, unimals):
@@ -222,6 +231,18 @@ def test_study_only_selects_runs_and_names_the_known_ones(capsys, unimals):
     assert "only=['scale_afte']" in err and "scale_before, scale_after" in err
     # evaluation sets are checked before anything trains: gen/train has no val set
     assert study.main(["ab_rmomo_cell", "only=[scale_before]", "--", "robots=gen/train"]) == 2
+    assert "no val set" in capsys.readouterr().err
+
+
+def test_study_evaluate_overrides_the_study_files_sets(capsys, unimals):
+    """evaluate=[...] replaces the study file's sets and their order (the zero-shot sets first under a time limit);
+    a set the run's robots have not is refused before anything trains."""
+    from experiments import study
+    assert study.main(["paper", "archs=[rmomo]", "seeds=[0]", "dry_run=true"]) == 0
+    assert "then evaluate ['train', 'val', 'test', 'variants']" in capsys.readouterr().out
+    assert study.main(["paper", "archs=[rmomo]", "seeds=[0]", "evaluate=[test,variants]", "dry_run=true"]) == 0
+    assert "then evaluate ['test', 'variants']" in capsys.readouterr().out
+    assert study.main(["paper", "archs=[rmomo]", "seeds=[0]", "evaluate=[val]", "--", "robots=gen/train"]) == 2
     assert "no val set" in capsys.readouterr().err
 
 
