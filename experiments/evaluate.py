@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import sys
-from typing import Any, Optional
+from typing import Any, List, Optional
 
 from omegaconf import MISSING
 
@@ -28,7 +28,8 @@ class EvaluateConfig:
     episodes: int = 4                   # episodes per robot (episode k of robot r always has the same key)
     seed: int = 0
     step: Optional[int] = None          # checkpoint (iteration) to evaluate; None: the newest
-    zero_state_steps: int = 100         # recurrent models: also sweep with the state held at zero this many steps
+    zero_state_steps: int = 100         # recurrent models: also sweep with the state held at zero this many steps,
+    zero_state_sets: List[str] = dataclasses.field(default_factory=lambda: ["test"])   # on the sets of these tags
     trace_steps: int = 500              # the reward of each of the first N steps is kept (reward per timestep)
     episode_length: Optional[int] = None   # None: the run's
     max_envs: Optional[int] = None      # episodes per jitted call (None: a whole set, or one change type)
@@ -41,7 +42,7 @@ register("evaluate_schema", EvaluateConfig)
 def run(c: EvaluateConfig) -> None:
     sets = c.robots if isinstance(c.robots, (list, tuple)) else [c.robots]
     evaluate_run(c.run_dir, [str(s) for s in sets], episodes=c.episodes, seed=c.seed,
-                 zero_state_steps=c.zero_state_steps, step=c.step, max_envs=c.max_envs,
+                 zero_state_steps=c.zero_state_steps, zero_state_sets=c.zero_state_sets, step=c.step, max_envs=c.max_envs,
                  episode_length=c.episode_length, trace_steps=c.trace_steps)
 
 

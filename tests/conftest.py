@@ -67,7 +67,7 @@ def evaluated_runs(smoke_run, smoke_run_ff):
     from mjx_morph.eval.evaluate import evaluate_run
     kw = dict(episodes=2, seed=0, zero_state_steps=10, episode_length=EVAL_STEPS, trace_steps=EVAL_STEPS,
               log=EVAL_LOG.append)
-    evaluate_run(smoke_run[0], ["train", "variants", "test:train"], **kw)
+    evaluate_run(smoke_run[0], ["train", "variants", "test:train"], zero_state_sets=("train", "test"), **kw)
     evaluate_run(smoke_run_ff[0], ["train", "test:train"], **kw)
     return smoke_run[0], smoke_run_ff[0]
 

@@ -120,6 +120,23 @@ def test_evaluation_reports_progress_and_checks_its_input_first(evaluated_runs, 
         assert not (d / "eval").exists()
 
 
+def test_zero_state_sweep_runs_on_the_test_set_alone_by_default(evaluated_runs, tmp_path):
+    """The recurrent model's second sweep (state held at zero) is what the report reads from test.json only: by
+    default train and val cost one sweep."""
+    from conftest import EVAL_STEPS
+    d = tmp_path / "run"
+    shutil.copytree(evaluated_runs[0], d)
+    shutil.rmtree(d / "eval")
+    log = []
+    evaluate_run(d, ["train", "test:train"], episodes=2, seed=0, zero_state_steps=10, episode_length=EVAL_STEPS,
+                 trace_steps=EVAL_STEPS, log=log.append)
+    train, test = (json.loads((d / "eval" / f"{t}.json").read_text()) for t in ("train", "test"))
+    assert "reward_trace_zero_state" not in train and "mean_return_zero_state" not in train
+    assert test["zero_state_steps"] == 10 and len(test["reward_trace_zero_state"]) == EVAL_STEPS
+    assert any(ln.startswith("[mjx_morph] train: 4 episodes") for ln in log), log
+    assert any(ln.startswith("[mjx_morph] test: 8 episodes") for ln in log), log
+
+
 def test_another_run_of_the_same_model_reuses_the_compiled_sweep(evaluated_runs, tmp_path):
     """A second run of the same config (a study's other seed; here a copy of the metamorph run) builds no env and
     compiles nothing, and its results equal the first run's (same parameters)."""

@@ -5,7 +5,9 @@
 writes, per set, `<run_dir>/eval/<tag>.csv` (one row per episode) and `<run_dir>/eval/<tag>.json` (summary: mean
 return and normalised return with 95% confidence intervals over robots, per-robot means, per change type for
 variants, fall/timeout/instability counts, the reward per timestep of the first steps, and the same with the
-recurrent state held at zero for the first `zero_state_steps` steps for recurrent models). `train_seed` is the run's training seed, `eval_seed` the seed of the evaluation episodes' start
+recurrent state held at zero for the first `zero_state_steps` steps for recurrent models, on the sets tagged in
+`zero_state_sets`: by default the test set alone, which is all the report reads it from, so that train and val cost one
+sweep, not two). `train_seed` is the run's training seed, `eval_seed` the seed of the evaluation episodes' start
 states (files written before session 10 have only `seed`, which was the evaluation seed).
 
 Set names: `train` (the robots the run trained on, `num_robots` included), `test` and `val` (the held-out robots
@@ -125,7 +127,8 @@ def _concat(results: list[SweepResult]) -> SweepResult:
 
 
 def evaluate_run(run_dir: str | Path, sets: Iterable[str | EvalSet] = ("train", "test", "variants"), episodes: int = 4,
-                 seed: int = 0, zero_state_steps: int = 100, step: int | None = None, max_envs: int | None = None,
+                 seed: int = 0, zero_state_steps: int = 100, zero_state_sets: Sequence[str] = ("test",),
+                 step: int | None = None, max_envs: int | None = None,
                  episode_length: int | None = None, trace_steps: int = 500,
                  log: Callable[[str], None] = print) -> dict[str, dict]:
     """Evaluate the run's checkpoint `step` (default: newest) on each set; returns {tag: summary} and writes the
@@ -168,7 +171,8 @@ def evaluate_run(run_dir: str | Path, sets: Iterable[str | EvalSet] = ("train", 
         chunk = max_envs or max(len(g) for g in groups.values()) * episodes
         if not max_envs and jax.default_backend() == "cpu":
             chunk = min(chunk, CPU_CHUNK)
-        sweeps = 1 + int(es.groups is None and model.recurrent and zero_state_steps > 0)
+        zero_sweep = es.groups is None and model.recurrent and zero_state_steps > 0 and es.tag in zero_state_sets
+        sweeps = 1 + int(zero_sweep)
         meter.start(es.tag, len(names) * episodes * sweeps, sweeper.steps, chunk, compiling)
         results, robot_of, episode_of, per_change = [], [], [], {}
         for change, idx in groups.items():
@@ -189,7 +193,7 @@ def evaluate_run(run_dir: str | Path, sets: Iterable[str | EvalSet] = ("train", 
                    **({"per_change": per_change} if per_change else {}), "per_robot": per_robot}
         summary["reward_trace"] = res.reward.mean(axis=1).tolist()
         summary["alive_trace"] = (np.arange(res.reward.shape[0])[:, None] < res.length[None, :]).mean(axis=1).tolist()
-        if es.groups is None and model.recurrent and zero_state_steps > 0:
+        if zero_sweep:
             z = sweeper(ts.params, ts.obs_rms, robot_of, episode_of, seed=seed, zero_state_steps=zero_state_steps,
                         max_envs=chunk, progress=meter.chunk)
             summary["zero_state_steps"] = int(zero_state_steps)
