@@ -87,7 +87,8 @@ def synthetic_state_and_batch(trainer: Trainer, key: jax.Array):
     zeros = lambda s: jnp.zeros(s.shape, s.dtype)
     ts = jax.tree.map(zeros, abstract)
     k_model, k_obs, k_act, k_first, k_robot, ka, kb, kc, kd = jax.random.split(key, 9)
-    one_env = jax.tree.map(lambda s: jnp.zeros((1, *s.shape[2:]), s.dtype), abstract.tail_obs)   # (B, N, ...) -> (1, ...)
+    # (B, N, ...) -> (1, ...): one env's observation, for the parameter init
+    one_env = jax.tree.map(lambda s: jnp.zeros((1, *s.shape[2:]), s.dtype), abstract.tail_obs)
     params = model.init(k_model, env.robots, one_env)
     ts = ts.replace(params=params, opt_state=trainer.tx.init(params), key=key)
     t, n, k = cfg.rollout_len, cfg.num_envs, trainer.num_windows
@@ -166,8 +167,9 @@ def _is_helper(file: str) -> bool:
 def hlo_sources(hlo_text: str) -> dict[str, dict]:
     """Kernel name (an HLO instruction's name with '.' and '-' as '_') -> its result shape ("shape"), the JAX op it
     came from ("jax_op"), and, when the module carries its stack-frame tables, the Python frames XLA recorded for
-    it ("stack": file:function:line from the innermost outwards, at most 16; "where": the innermost) and the stage it belongs to ("stage": file:function of the
-    innermost frame outside HELPER_FILES and the libraries, e.g. `mjx/smooth.py:kinematics`)."""
+    it ("stack": file:function:line from the innermost outwards, at most 16; "where": the innermost) and the stage
+    it belongs to ("stage": file:function of the innermost frame outside HELPER_FILES and the libraries, e.g.
+    `mjx/smooth.py:kinematics`)."""
     files, funcs = _hlo_table(hlo_text, "FileNames"), _hlo_table(hlo_text, "FunctionNames")
     locations, frames = _hlo_table(hlo_text, "FileLocations"), _hlo_table(hlo_text, "StackFrames")
 
@@ -229,8 +231,8 @@ def _flops_out(out: dict, trainer: Trainer, ts, batch, update_s: float, precisio
 
 
 def _profile(cfg: BenchTrainConfig, phase: str, fn, args: tuple, out: dict) -> None:
-    """Trace one call of the jitted `fn(*args)` into profile_dir/<phase>; its top kernels and time per source file go
-    to out["profile"][phase] and to stderr."""
+    """Trace one call of the jitted `fn(*args)` into profile_dir/<phase>; its top kernels and the kernel time per
+    stage (`time_by_stage`) go to out["profile"][phase] and to stderr."""
     trace_dir = Path(cfg.profile_dir) / phase
     note(f"profiling one {phase} into {trace_dir} ...")
     with jax.profiler.trace(str(trace_dir)):
@@ -305,7 +307,8 @@ def _iterations(cfg: BenchTrainConfig, trainer: Trainer, steps: int, build_s: fl
         ts, batch, m, r, u = one_iteration(ts)
         roll.append(r)
         upd.append(u)
-        epochs.append(float(np.mean(m["epochs_run"])) if update else 0.0)
+        if update:
+            epochs.append(float(np.mean(m["epochs_run"])))
     out.update(rollout_sps=steps / np.median(roll),
                compile_s={"build": build_s, "init": init_s, "rollout": compile_rollout})
     if not update:

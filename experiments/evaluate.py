@@ -42,8 +42,8 @@ register("evaluate_schema", EvaluateConfig)
 def run(c: EvaluateConfig) -> None:
     sets = c.robots if isinstance(c.robots, (list, tuple)) else [c.robots]
     evaluate_run(c.run_dir, [str(s) for s in sets], episodes=c.episodes, seed=c.seed,
-                 zero_state_steps=c.zero_state_steps, zero_state_sets=c.zero_state_sets, step=c.step, max_envs=c.max_envs,
-                 episode_length=c.episode_length, trace_steps=c.trace_steps)
+                 zero_state_steps=c.zero_state_steps, zero_state_sets=c.zero_state_sets, step=c.step,
+                 max_envs=c.max_envs, episode_length=c.episode_length, trace_steps=c.trace_steps)
 
 
 def main(argv=None) -> int:
