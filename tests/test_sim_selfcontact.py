@@ -213,3 +213,19 @@ def test_limb_pair_budget_loses_no_pair(robots):
     np.testing.assert_array_equal(np.asarray(na), np.asarray(nb))
     np.testing.assert_array_equal(np.asarray(la), np.asarray(lb))
     assert np.asarray(la).sum() > 0
+
+
+def test_search_is_shared_by_geometry_and_spread_over_processes(robots):
+    """Variants that change dynamics only share their base robot's search (the cache key is the geometry); kinematic
+    variants do not; a search spread over processes gives what one process finds."""
+    from mjx_morph.unimal.variants import CHANGE_TYPES, DYNAMICS_TYPES, robot_variants
+    base = robots[0]
+    digest = selfcontact.geometry_digest
+    for change in CHANGE_TYPES:
+        v = robot_variants(base, change, per_type=1)[0]
+        assert (digest(v) == digest(base)) == (change in DYNAMICS_TYPES), change
+    margin = 0.0123                                        # settings no other test uses: nothing cached
+    found = selfcontact.robots_pairs(robots[:3], margin=margin, processes=2)
+    for m, f in zip(robots[:3], found):
+        assert f == selfcontact.search_pairs(selfcontact.kinematics(compile_model(m)), margin=margin)
+    assert selfcontact.search_processes(selfcontact.PARALLEL_FROM - 1) == 1

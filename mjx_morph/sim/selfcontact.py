@@ -45,13 +45,21 @@ bounds, each valid for every pose q of the box:
     M_jk, a bound of |d^2 e / dq_j dq_k|, is the bound R of (1) on e's distance from the deeper of the two axes.
 Bound (1) is the better one for large boxes, (2) for small ones (it does not count motion along the plane).
 
-The result for a robot is cached per `Morphology` (a frozen, hashable value) and per margin, slack and budget, so
-building several envs of one set in a process computes it once.
+The result for a robot is cached per geometry (a hash of its `Kinematics`: variants that change dynamics only share
+it) and per margin, slack and budget, so building several envs of one set in a process computes it once; a set of
+many new geometries is searched in several processes (`robots_pairs`).
 """
 from __future__ import annotations
 
 import dataclasses
+import functools
+import hashlib
+import multiprocessing
+import os
 import time
+import warnings
+from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 from functools import lru_cache
 from typing import NamedTuple, Sequence
 
@@ -361,13 +369,74 @@ class RobotPairs:
 def robot_pairs(m: Morphology, margin: float = MARGIN, slack: float = SLACK, budget: int = BOX_BUDGET,
                 seed: int = 0) -> RobotPairs:
     """The node pairs of robot `m` whose geoms can come within `margin` for joint angles in the ranges widened by
-    `slack` (cached per robot and settings)."""
-    return _robot_pairs_cached(m, float(margin), float(slack), int(budget), int(seed))
+    `slack` (cached per geometry and settings)."""
+    return robots_pairs([m], margin, slack, budget, seed, processes=1)[0]
+
+
+def robots_pairs(robots: Sequence[Morphology], margin: float = MARGIN, slack: float = SLACK,
+                 budget: int = BOX_BUDGET, seed: int = 0, processes: int | None = None) -> list[RobotPairs]:
+    """`robot_pairs` of each robot. The outcome depends on the robot's `Kinematics` alone, so it is cached per
+    geometry (`geometry_digest`): robots that differ only in dynamics (density, gear, armature, damping: two thirds
+    of the 2400 variants) share their base robot's search. The searches left run in `processes` processes (default
+    `search_processes`): the 900 distinct geometries of the variants take minutes on one core."""
+    keys = [(geometry_digest(m), float(margin), float(slack), int(budget), int(seed)) for m in robots]
+    todo = {}
+    for key, m in zip(keys, robots):
+        if key not in _FOUND:
+            todo.setdefault(key, _kinematics(m))
+    if todo:
+        n = search_processes(len(todo)) if processes is None else max(1, min(int(processes), len(todo)))
+        for key, found in zip(todo, _search_all(list(todo.values()), n, margin, slack, budget, seed)):
+            _FOUND[key] = found
+    return [_FOUND[key] for key in keys]
+
+
+_FOUND: dict[tuple, RobotPairs] = {}     # (geometry digest, margin, slack, budget, seed) -> the search's outcome
+PARALLEL_FROM = 16     # searches in one call from which they are spread over processes
+MAX_PROCESSES = 16     # ... over at most this many (the GPU machines have 16 cores per GPU)
 
 
 @lru_cache(maxsize=None)
-def _robot_pairs_cached(m: Morphology, margin: float, slack: float, budget: int, seed: int) -> RobotPairs:
-    return search_pairs(kinematics(compile_model(m)), margin, slack, budget, seed)
+def _kinematics(m: Morphology) -> Kinematics:
+    return kinematics(compile_model(m))
+
+
+@lru_cache(maxsize=None)
+def geometry_digest(m: Morphology) -> str:
+    """A hash of everything the search reads of robot `m` (its `Kinematics`: tree, frames, hinge anchors, axes and
+    ranges, geom segments and radii)."""
+    kin = _kinematics(m)
+    h = hashlib.sha256()
+    for f in dataclasses.fields(kin):
+        a = np.ascontiguousarray(getattr(kin, f.name))
+        h.update(f"{f.name}{a.dtype}{a.shape}".encode())
+        h.update(a.tobytes())
+    return h.hexdigest()
+
+
+def search_processes(searches: int) -> int:
+    """Processes for `searches` robot searches: 1 below `PARALLEL_FROM` (starting a process costs ~1 s, its
+    imports), else one per core this process may use, at most `MAX_PROCESSES`."""
+    if searches < PARALLEL_FROM:
+        return 1
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    return max(1, min(cores, MAX_PROCESSES, searches))
+
+
+def _search_all(kins: list[Kinematics], processes: int, margin: float, slack: float, budget: int,
+                seed: int) -> list[RobotPairs]:
+    """`search_pairs` of each robot, in this process or in `processes` fresh ones ("spawn": a child forked from a
+    process running JAX's threads could deadlock). A pool that breaks (e.g. a script without the
+    `if __name__ == "__main__":` guard that "spawn" needs) leaves the searches to this process, with a warning."""
+    search = functools.partial(search_pairs, margin=margin, slack=slack, budget=budget, seed=seed)
+    if processes > 1:
+        try:
+            with ProcessPoolExecutor(processes, mp_context=multiprocessing.get_context("spawn")) as pool:
+                return list(pool.map(search, kins, chunksize=max(1, len(kins) // (4 * processes))))
+        except BrokenProcessPool as e:
+            warnings.warn(f"the self-collision pair search could not use {processes} processes ({e}); searching "
+                          f"the {len(kins)} robots in this one", RuntimeWarning, stacklevel=3)
+    return [search(kin) for kin in kins]
 
 
 def pair_gap(kin: Kinematics, q: np.ndarray, pa: np.ndarray, pb: np.ndarray) -> np.ndarray:
@@ -628,8 +697,7 @@ def find_slot_pairs(robots: Sequence[Morphology], tree: SharedTree, margin: floa
     """The cut of the set: every robot's node pairs (`robot_pairs`) mapped onto the tree's slots."""
     t0 = time.perf_counter()
     kept, touching, unresolved = set(), set(), 0
-    for r, m in enumerate(robots):
-        found = robot_pairs(m, margin, slack, budget)
+    for r, found in enumerate(robots_pairs(robots, margin, slack, budget)):
         kept.update(slot_pair(tree, r, a, b) for a, b in found.kept)
         touching.update(slot_pair(tree, r, a, b) for a, b in found.touching)
         unresolved += len(found.unresolved)
