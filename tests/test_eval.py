@@ -70,7 +70,7 @@ def test_evaluate_run_groups_variants_and_writes_consistent_files(evaluated_runs
     d = evaluated_runs[0]
     assert {p.name for p in (d / "eval").iterdir()} == {f"{t}.{x}" for t in ("train", "variants", "test")
                                                          for x in ("csv", "json")}
-    # variants: 2 robots x 6 change types x 4, one sweep per change type, counted per type
+    # variants: 2 robots x 6 change types x 4, one sweep, summarised per change type
     v = json.loads((d / "eval" / "variants.json").read_text())
     assert v["robots"] == 48 and v["episodes_total"] == 96 and set(v["per_change"]) == set(CHANGE_TYPES)
     assert all(s["robots"] == 8 for s in v["per_change"].values())
@@ -82,6 +82,8 @@ def test_evaluate_run_groups_variants_and_writes_consistent_files(evaluated_runs
         assert len(mine) == 16 and all(r["robot"] == f"{r['base']}_{c}_{r['robot'][-1]}" for r in mine)
         np.testing.assert_allclose(np.mean([float(r["return"]) for r in mine]), v["per_change"][c]["mean_return"],
                                    rtol=1e-4)
+        assert v["per_change"][c]["episodes_total"] == 16
+        assert v["per_change"][c]["fall_fraction"] == pytest.approx(np.mean([int(r["fell"]) for r in mine]))
     assert {r["base"] for r in rows} == {m for m in json.loads((d / "eval" / "train.json").read_text())["per_robot"]}
     # the labelled set is the train robots again: same keys, same returns
     te = json.loads((d / "eval" / "test.json").read_text())

@@ -12,8 +12,8 @@ states (files written before session 10 have only `seed`, which was the evaluati
 
 Set names: `train` (the robots the run trained on, `num_robots` included), `test` and `val` (the held-out robots
 of the run's robot family: `unimal100/test70` / `unimal100/val` for the original robots, `gen/test` for the
-generated ones), `variants` (the 24 dynamics/kinematics variants of each train robot, one sweep per change type;
-`variants/<change>`: one change type),
+generated ones), `variants` (the 24 dynamics/kinematics variants of each train robot, one sweep, summarised per change
+type too; `variants/<change>`: one change type),
 or any set name or path that `load_set` knows (tag: the name with "/" replaced by "_"); `<tag>:<set>` evaluates
 a set under another label (e.g. `test:path/to/robots`, so that reports treat it as the test set).
 
@@ -122,8 +122,9 @@ def _summary(res: SweepResult, per_robot: dict[str, float], task: str) -> dict:
             "instabilities": int(res.unstable.sum())}
 
 
-def _concat(results: list[SweepResult]) -> SweepResult:
-    return SweepResult(*[np.concatenate(xs, axis=-1) for xs in zip(*results)])
+def _select(res: SweepResult, mask: np.ndarray) -> SweepResult:
+    """The episodes of `res` where `mask` (N,) is true."""
+    return SweepResult(*[x[..., mask] for x in res])
 
 
 def evaluate_run(run_dir: str | Path, sets: Iterable[str | EvalSet] = ("train", "test", "variants"), episodes: int = 4,
@@ -166,26 +167,21 @@ def evaluate_run(run_dir: str | Path, sets: Iterable[str | EvalSet] = ("train", 
         _SWEEPERS[key] = sweeper                          # the most recently used last
         while len(_SWEEPERS) > SWEEPERS_KEPT:
             _SWEEPERS.popitem(last=False)
-        groups = es.groups or {None: list(range(len(es.robots)))}
-        # one compiled size for all groups; on a CPU at most CPU_CHUNK episodes per call, so that progress shows
-        chunk = max_envs or max(len(g) for g in groups.values()) * episodes
-        if not max_envs and jax.default_backend() == "cpu":
-            chunk = min(chunk, CPU_CHUNK)
+        # all of a set's episodes in one sweep, each change type's summary read off it (the variants' 9600 episodes
+        # in 2 chunks of 4800 envs fill a GPU that one change type's 1600 would not); on a CPU at most CPU_CHUNK
+        # episodes per call, so that progress shows
+        robot_of = np.repeat(np.arange(len(names), dtype=np.int32), episodes)
+        episode_of = np.tile(np.arange(episodes, dtype=np.int32), len(names))
+        most = CPU_CHUNK if jax.default_backend() == "cpu" else MAX_CHUNK
+        chunk = max_envs or -(-len(robot_of) // -(-len(robot_of) // most))     # equal chunks of at most `most`
         zero_sweep = es.groups is None and model.recurrent and zero_state_steps > 0 and es.tag in zero_state_sets
         sweeps = 1 + int(zero_sweep)
         meter.start(es.tag, len(names) * episodes * sweeps, sweeper.steps, chunk, compiling)
-        results, robot_of, episode_of, per_change = [], [], [], {}
-        for change, idx in groups.items():
-            r = np.repeat(np.asarray(idx, np.int32), episodes)
-            e = np.tile(np.arange(episodes, dtype=np.int32), len(idx))
-            res = sweeper(ts.params, ts.obs_rms, r, e, seed=seed, max_envs=chunk, progress=meter.chunk)
-            results.append(res)
-            robot_of.append(r)
-            episode_of.append(e)
-            if change is not None:
-                per_change[change] = _summary(res, _per_robot(res, r, names), task)
-        res, robot_of, episode_of = _concat(results), np.concatenate(robot_of), np.concatenate(episode_of)
+        res = sweeper(ts.params, ts.obs_rms, robot_of, episode_of, seed=seed, max_envs=chunk, progress=meter.chunk)
         per_robot = _per_robot(res, robot_of, names)
+        per_change = {change: _summary(_select(res, np.isin(robot_of, idx)),
+                                       {names[i]: per_robot[names[i]] for i in idx}, task)
+                      for change, idx in (es.groups or {}).items()}
         summary = {"run_dir": str(run_dir), "arch": model.arch, "task": task, "set": es.name, "tag": es.tag,
                    "checkpoint": step, "env_steps": env_steps, "episodes": episodes,
                    "train_seed": cfg.seed, "eval_seed": seed,
@@ -209,6 +205,7 @@ def evaluate_run(run_dir: str | Path, sets: Iterable[str | EvalSet] = ("train", 
 
 
 CPU_CHUNK = 64     # episodes per jitted sweep call on a CPU (progress every few minutes instead of none for hours)
+MAX_CHUNK = 5000   # ... and on an accelerator (bounds the memory of one call)
 
 
 class _Meter:
