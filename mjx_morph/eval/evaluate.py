@@ -163,7 +163,11 @@ def evaluate_run(run_dir: str | Path, sets: Iterable[str | EvalSet] = ("train", 
         compiling = sweeper is None
         if compiling:
             log(f"[mjx_morph] {es.tag}: building the env of {len(names)} robots ({es.name})")
-            sweeper = Sweeper(make_env_for(cfg, es.robots, **env_over), model, trace_steps, compiler_options=options)
+            env = make_env_for(cfg, es.robots, **env_over)
+            pairs = getattr(getattr(env, "sm", None), "self_contact", None)
+            log(f"[mjx_morph] {es.tag}: env built in {time.perf_counter() - t0:.0f} s"
+                + (f"; {pairs.line()}" if pairs is not None else ""))
+            sweeper = Sweeper(env, model, trace_steps, compiler_options=options)
         _SWEEPERS[key] = sweeper                          # the most recently used last
         while len(_SWEEPERS) > SWEEPERS_KEPT:
             _SWEEPERS.popitem(last=False)
