@@ -3,6 +3,7 @@ padded models' MJX pairs, and a hand-made robot with one obviously touching and 
 from __future__ import annotations
 
 import dataclasses
+import warnings
 
 import mujoco
 import numpy as np
@@ -225,7 +226,9 @@ def test_search_is_shared_by_geometry_and_spread_over_processes(robots):
         v = robot_variants(base, change, per_type=1)[0]
         assert (digest(v) == digest(base)) == (change in DYNAMICS_TYPES), change
     margin = 0.0123                                        # settings no other test uses: nothing cached
-    found = selfcontact.robots_pairs(robots[:3], margin=margin, processes=2)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)       # the pool's fallback to one process would warn
+        found = selfcontact.robots_pairs(robots[:3], margin=margin, processes=2)
     for m, f in zip(robots[:3], found):
         assert f == selfcontact.search_pairs(selfcontact.kinematics(compile_model(m)), margin=margin)
     assert selfcontact.search_processes(selfcontact.PARALLEL_FROM - 1) == 1

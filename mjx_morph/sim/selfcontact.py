@@ -77,6 +77,8 @@ RANDOM_SAMPLES = 128   # random poses per pair tried before the search (finds mo
 DESCENT_STARTS = 8     # ... the best of them then descend along the gradient of the distance
 DESCENT_STEPS = 40
 CHUNK = 32_768        # boxes evaluated at once (bounds the memory of one evaluation)
+PARALLEL_FROM = 16     # robot searches in one call from which they are spread over processes
+MAX_PROCESSES = 16     # ... over at most this many (the GPU machines have 16 cores per GPU)
 
 
 # ---- the robot's kinematics ---------------------------------------------------------------------------------------
@@ -392,8 +394,6 @@ def robots_pairs(robots: Sequence[Morphology], margin: float = MARGIN, slack: fl
 
 
 _FOUND: dict[tuple, RobotPairs] = {}     # (geometry digest, margin, slack, budget, seed) -> the search's outcome
-PARALLEL_FROM = 16     # searches in one call from which they are spread over processes
-MAX_PROCESSES = 16     # ... over at most this many (the GPU machines have 16 cores per GPU)
 
 
 @lru_cache(maxsize=None)
