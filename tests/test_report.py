@@ -471,3 +471,24 @@ def test_collect_keeps_the_small_artefacts_and_rebuilds_the_report(tmp_path):
     assert collect.main([f"runs=[{study / 'ft-rmomo-s0'}]", f"out={tmp_path / 'one'}", "max_file_mb=0.01"]) == 0
     assert (tmp_path / "one" / "ft-rmomo-s0" / "config.yaml").exists()
     assert not (tmp_path / "one" / "ft-rmomo-s0" / "eval" / "variants.json").exists()     # > 10 KB: left out
+
+
+def test_runs_of_one_seed_are_one_sample_in_the_claims(tmp_path):
+    """The same seed run twice (e.g. on another GPU model) is one sample of the claims, the mean of its runs, and
+    the report says so."""
+    from mjx_morph.eval.runs import read_run
+    from mjx_morph.eval.stats import repeated_seeds, seed_set_means
+    made = [make_run(tmp_path / "runs", name, arch="rmomo", seed=seed, metrics=False)
+            for name, seed in (("a-s0", 0), ("b-s0", 0), ("a-s1", 1))]
+    runs = [read_run(p) for p, _ in made]
+    means = seed_set_means(runs, "test")
+    per = [np.mean(list(pr["test"].values())) for _, pr in made]
+    assert means == pytest.approx([(per[0] + per[1]) / 2, per[2]])
+    assert list(repeated_seeds(runs)) == [0]
+    for seed in (0, 1):
+        make_run(tmp_path / "runs", f"m-s{seed}", arch="modumorph", seed=seed, metrics=False)
+    build_report([tmp_path / "runs"], tmp_path / "out")
+    rows = _claim_rows(tmp_path / "out")
+    assert rows[("ft", "rmomo", "test")]["model_seeds"] == "2"
+    text = (tmp_path / "out" / "report.md").read_text()
+    assert "ft, rmomo: 2 runs of seed 0" in text and "count as one seed in the claims" in text

@@ -53,7 +53,8 @@ from .document import Document, fmt, fmt_steps, pm, write_csv
 from .params import param_count
 from .runs import CONTEXT_GROUPS, Run, classify, find_run_dirs, name_variants, read_run
 from .stats import (CLAIM_MARGIN, TASK_RANGES, Stat, change_stats, ci95, claim_test, mean_curve, normalised_or_nan,
-                    robot_difference, seed_average, seed_set_means, set_stat, stat_of)
+                    repeated_seeds, robot_difference, seed_average, seed_count, seed_set_means, set_stat,
+                    stat_of)
 
 SETS = ("train", "test", "val", "variants")
 TASK_ORDER = tuple(TASK_RANGES)
@@ -188,7 +189,7 @@ def _returns(doc: Document, ctx: ReportContext) -> None:
             st = stats[a]
             if not any(st.values()):
                 continue
-            seeds = len(rs)
+            seeds = seed_count(rs)
             row, mrow = [t, a, seeds], [t, a, seeds]
             for s in SETS:
                 x = st[s]
@@ -373,6 +374,10 @@ def _claims(doc: Document, ctx: ReportContext) -> None:
             md.append([t, c.text, c.set, f"{r.model_seeds}/{r.baseline_seeds}", fmt(r.model_mean),
                        fmt(r.baseline_mean), _interval(r.difference, r.ci_low, r.ci_high),
                        f"{r.relative:+.1f}%" if math.isfinite(r.relative) else "–", r.verdict])
+        for arch in sorted(claim_archs & set(main)):
+            for seed, paths in repeated_seeds(main[arch]).items():
+                doc.missing.append(f"{t}, {arch}: {len(paths)} runs of seed {seed} ({', '.join(paths)}) count as one "
+                                   f"seed in the claims, their mean")
         if untested:
             arms = [a for a in main if a.split(",", 1)[0] in claim_archs and a not in claim_archs]
             doc.missing.append(f"{t}: claims untested — each needs eval/<set>.json of main runs of both "
@@ -555,11 +560,11 @@ def _compute_table(doc: Document, ctx: ReportContext) -> None:
             md.append([t, a, len(rs), fmt_steps(row[3]), pm(row[4], row[5], 2), fmt(row[6], 0), pm(row[7], row[8])])
     if rows:
         doc.table("Compute and final training return (main runs)", "compute",
-                  ["task", "arch", "seeds", "env_steps", "h_per_100M", "h_per_100M_ci95", "mean_sps",
+                  ["task", "arch", "runs", "env_steps", "h_per_100M", "h_per_100M_ci95", "mean_sps",
                    "final_train_return", "final_train_return_ci95"], rows,
-                  ["task", "arch", "seeds", "env steps", "wall h / 100 M steps", "mean steps/s", "final train return"],
-                  md, note="mean ± 95% CI over seeds; final train return: mean episode return of the last ~5% of "
-                           "iterations.")
+                  ["task", "arch", "runs", "env steps", "wall h / 100 M steps", "mean steps/s", "final train return"],
+                  md, note="mean ± 95% CI over runs (a seed run twice counts twice here); final train return: mean "
+                           "episode return of the last ~5% of iterations.")
 
 
 # (heading, section) in report order; a section's figures go under "## <heading>" (the runs table under "## Runs")

@@ -11,9 +11,9 @@ evaluated the robot (`seed_average`); means and 95% CIs are then taken over robo
 per-task ranges of `TASK_RANGES` (nan for a task without one). Learning curves are lightly smoothed, interpolated
 onto a common grid and averaged over the curves covering each grid point.
 
-Claims (`claim_test`) take seeds as the samples: each seed's mean return over the set's robots (`seed_set_means`),
-the difference of the means over seeds model - baseline with a 95% CI from Welch's t, and a verdict against a margin
-of `CLAIM_MARGIN` of the baseline's mean.
+Claims (`claim_test`) take seeds as the samples: each seed's mean return over the set's robots (`seed_set_means`;
+runs that share a seed are one sample), the difference of the means over seeds model - baseline with a 95% CI from
+Welch's t, and a verdict against a margin of `CLAIM_MARGIN` of the baseline's mean.
 """
 from __future__ import annotations
 
@@ -94,9 +94,8 @@ def set_stat(runs: Sequence[Run], tag: str, task: str) -> Stat | None:
         return None
     pr = seed_average(have, tag)
     if pr:
-        return stat_of(list(pr.values()), task, len(have))
-    means = [float(r.evals[tag].get("mean_return", np.nan)) for r in have]
-    st = stat_of(means, task, len(have))
+        return stat_of(list(pr.values()), task, seed_count(have))
+    st = stat_of(seed_set_means(have, tag), task, seed_count(have))
     if len(have) == 1:
         st.ci = float(have[0].evals[tag].get("ci95_return", np.nan))
         st.norm_ci = float(have[0].evals[tag].get("ci95_normalised", np.nan))
@@ -115,7 +114,7 @@ def change_stats(runs: Sequence[Run], task: str) -> dict[str, Stat]:
         except ValueError:
             continue
     if by:
-        return {c: stat_of(by[c], task, len(have)) for c in CHANGE_TYPES if c in by}
+        return {c: stat_of(by[c], task, seed_count(have)) for c in CHANGE_TYPES if c in by}
     out = {}
     for c in CHANGE_TYPES:          # no per-robot names: the files' per-change summaries
         pcs = [r.evals["variants"].get("per_change", {}).get(c) for r in have]
@@ -145,10 +144,12 @@ def robot_difference(runs_a: Sequence[Run], runs_b: Sequence[Run], tag: str = "t
 
 
 def seed_set_means(runs: Sequence[Run], tag: str) -> list[float]:
-    """Each run's (seed's) mean return over the robots of `tag`, from its per-robot numbers (those `seed_average`
-    reads; without any, the file's mean_return), for the runs that evaluated `tag`."""
-    out = []
-    for r in runs:
+    """Each seed's mean return over the robots of `tag`, from its runs' per-robot numbers (those `seed_average`
+    reads; without any, the file's mean_return), for the runs that evaluated `tag`. Runs of one seed (the same
+    config run again, e.g. on another GPU model, which gives another run) are one sample, their mean: they share
+    their initial parameters and episodes, so they are not independent seeds."""
+    by_seed: dict = {}
+    for i, r in enumerate(runs):
         if tag not in r.evals:
             continue
         pr = r.per_robot(tag)
@@ -157,8 +158,22 @@ def seed_set_means(runs: Sequence[Run], tag: str) -> list[float]:
         except (TypeError, ValueError):
             continue
         if math.isfinite(v):
-            out.append(v)
-    return out
+            by_seed.setdefault(("seed", r.seed) if r.seed is not None else ("run", i), []).append(v)
+    return [float(np.mean(v)) for v in by_seed.values()]
+
+
+def seed_count(runs: Sequence[Run]) -> int:
+    """How many seeds `runs` have (runs of one seed count once; a run without a seed counts alone)."""
+    return len({r.seed for r in runs if r.seed is not None}) + sum(r.seed is None for r in runs)
+
+
+def repeated_seeds(runs: Sequence[Run]) -> dict:
+    """{seed: [run paths]} for the seeds that more than one of `runs` has."""
+    paths: dict = {}
+    for r in runs:
+        if r.seed is not None:
+            paths.setdefault(r.seed, []).append(str(r.path))
+    return {seed: p for seed, p in paths.items() if len(p) > 1}
 
 
 def welch_ci95(a: Sequence[float], b: Sequence[float]) -> tuple[float, float]:
