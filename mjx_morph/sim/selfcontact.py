@@ -431,12 +431,20 @@ def _search_all(kins: list[Kinematics], processes: int, margin: float, slack: fl
     search = functools.partial(search_pairs, margin=margin, slack=slack, budget=budget, seed=seed)
     if processes > 1:
         try:
-            with ProcessPoolExecutor(processes, mp_context=multiprocessing.get_context("spawn")) as pool:
+            with ProcessPoolExecutor(processes, mp_context=multiprocessing.get_context("spawn"),
+                                     initializer=_cpu_only) as pool:
                 return list(pool.map(search, kins, chunksize=max(1, len(kins) // (4 * processes))))
         except BrokenProcessPool as e:
             warnings.warn(f"the self-collision pair search could not use {processes} processes ({e}); searching "
                           f"the {len(kins)} robots in this one", RuntimeWarning, stacklevel=3)
     return [search(kin) for kin in kins]
+
+
+def _cpu_only() -> None:
+    """A search process never uses JAX; should anything initialise it there, it stays off the accelerator, whose
+    memory the training process holds."""
+    import jax
+    jax.config.update("jax_platforms", "cpu")
 
 
 def pair_gap(kin: Kinematics, q: np.ndarray, pa: np.ndarray, pb: np.ndarray) -> np.ndarray:
