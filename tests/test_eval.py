@@ -105,13 +105,15 @@ def test_evaluate_run_groups_variants_and_writes_consistent_files(evaluated_runs
 def test_evaluation_reports_progress_and_checks_its_input_first(evaluated_runs, tmp_path):
     from conftest import EVAL_LOG
     lines = [ln for ln in EVAL_LOG if "train:" in ln or ln.startswith("[mjx_morph] train (")]
-    # rmomo on train: size first (2 robots x 2 episodes, and the zero-state sweep), then each chunk, then the result
+    # rmomo on train: the env (its build time and self-collision pairs), the size (2 robots x 2 episodes, and the
+    # zero-state sweep), then each chunk, then the result
     assert lines[0].startswith("[mjx_morph] train: building the env of 2 robots")
-    assert lines[1] == (f"[mjx_morph] train: 8 episodes x {STEPS} steps = {8 * STEPS} env steps in chunks of 4 "
+    assert lines[1].startswith("[mjx_morph] train: env built in ") and "self-collision pairs" in lines[1]
+    assert lines[2] == (f"[mjx_morph] train: 8 episodes x {STEPS} steps = {8 * STEPS} env steps in chunks of 4 "
                         "episodes; the first chunk includes compilation")
-    assert "compilation included" in lines[2] and "compilation included" not in lines[3] and "left" in lines[3]
-    assert lines[3].startswith(f"[mjx_morph]   train: {8 * STEPS:,}/{8 * STEPS:,} env steps")
-    assert lines[4].startswith("[mjx_morph] train (gen/train, 2 robots x 2 episodes): mean return")
+    assert "compilation included" in lines[3] and "compilation included" not in lines[4] and "left" in lines[4]
+    assert lines[4].startswith(f"[mjx_morph]   train: {8 * STEPS:,}/{8 * STEPS:,} env steps")
+    assert lines[5].startswith("[mjx_morph] train (gen/train, 2 robots x 2 episodes): mean return")
     d = tmp_path / "run"
     shutil.copytree(evaluated_runs[1], d)
     shutil.rmtree(d / "eval")
