@@ -32,7 +32,8 @@ class EvaluateConfig:
     zero_state_sets: List[str] = dataclasses.field(default_factory=lambda: ["test"])   # on the sets of these tags
     trace_steps: int = 500              # the reward of each of the first N steps is kept (reward per timestep)
     episode_length: Optional[int] = None   # None: the run's
-    max_envs: Optional[int] = None      # episodes per jitted call (None: a whole set, or one change type)
+    max_envs: Optional[int] = None      # episodes per jitted call (None: a whole set, in equal chunks of at most
+                                        # evaluate.MAX_CHUNK, CPU_CHUNK on a CPU)
     compile_cache: Optional[str] = DEFAULT_COMPILE_CACHE
 
 

@@ -52,7 +52,6 @@ many new geometries is searched in several processes (`robots_pairs`).
 from __future__ import annotations
 
 import dataclasses
-import functools
 import hashlib
 import multiprocessing
 import os
@@ -60,7 +59,7 @@ import time
 import warnings
 from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
-from functools import lru_cache
+from functools import lru_cache, partial
 from typing import NamedTuple, Sequence
 
 import mujoco
@@ -428,7 +427,7 @@ def _search_all(kins: list[Kinematics], processes: int, margin: float, slack: fl
     """`search_pairs` of each robot, in this process or in `processes` fresh ones ("spawn": a child forked from a
     process running JAX's threads could deadlock). A pool that breaks (e.g. a script without the
     `if __name__ == "__main__":` guard that "spawn" needs) leaves the searches to this process, with a warning."""
-    search = functools.partial(search_pairs, margin=margin, slack=slack, budget=budget, seed=seed)
+    search = partial(search_pairs, margin=margin, slack=slack, budget=budget, seed=seed)
     if processes > 1:
         try:
             with ProcessPoolExecutor(processes, mp_context=multiprocessing.get_context("spawn"),
