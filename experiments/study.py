@@ -59,10 +59,9 @@ MIN_TRAIN_MIN = 1.0     # with time_limit_min: do not start (compile) a training
 EVAL_SET_MIN = 2.5      # ... nor the evaluation of one set of one run (~100 robots, compilation included, one GPU:
                         # 110-136 s for the 100 train robots, 95 s for the 32 val robots on an H100; 71-80 s and
                         # 54-57 s on an H200)
-EVAL_VARIANTS_MIN = 5.0 # ... and of the 2400 variants: 208 s on an H100 in session 3, before self-collision, in 6
-                        # sweeps of 1600 envs; an estimate since (not yet measured on a GPU): building their env
-                        # (~1 min with the pair search spread over processes; it took over 5 min in one process on an
-                        # H200 host, session 19), compiling (~1 min) and 9.6 M env steps in 2 sweeps of 4800 envs
+EVAL_VARIANTS_MIN = 6.0 # ... and of the 2400 variants, one run per H100 of a 2-GPU host (session 20): env built in
+                        # 77-79 s (the pair search 29-30 s of it), then 2 sweeps of 4800 envs x 1000 steps, the first
+                        # with compilation in 154 s (31 k env steps/s); the second (not measured) ~2 min without compilation
 
 
 def eval_minutes(name: str) -> float:

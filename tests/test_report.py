@@ -331,9 +331,11 @@ def test_mean_curve_band():
     assert np.allclose(hi - m, half) and np.allclose(m - lo, half)
     _, m1, lo1, _, _ = mean_curve([(x, x)], points=20, smooth=False)
     assert np.isnan(lo1).all() and np.isfinite(m1).all()
-    # a shorter seed: beyond its end only the longer one counts, without a band
+    # a shorter seed: the mean and its band end with it (no jump to the longer seed alone)
     grid, m, lo, _, n = mean_curve([(x, x), (x[:50], x[:50] + 2)], points=100, smooth=False)
-    assert n[0] == 2 and n[-1] == 1 and np.isnan(lo[-1]) and m[-1] == pytest.approx(grid[-1])
+    assert n[0] == 2 and n[-1] == 1 and np.isnan(lo[-1]) and np.isnan(m[-1])
+    inside = grid <= x[49]
+    assert np.allclose(m[inside], grid[inside] + 1) and np.isnan(m[~inside]).all()
 
 
 def test_learning_curves_show_seeds_below_three_and_a_band_from_three(tmp_path, monkeypatch):
@@ -360,6 +362,15 @@ def test_learning_curves_show_seeds_below_three_and_a_band_from_three(tmp_path, 
         rows = _csv(tmp_path / "runs" / f"ft-rmomo-s{seed}" / "metrics.csv")
         assert x[-1] == float(rows[-1]["env_steps"])
         assert y[-1] == pytest.approx(float(rows[-1]["episode_return"]), abs=1e-6)
+    # 3 seeds, one stopped early: the mean and band end with it, and each seed is drawn thin to its own end
+    make_run(tmp_path / "runs2", "ft-modumorph-s0", arch="modumorph", seed=0, evals=(), iters=25)
+    for seed in (1, 2):
+        make_run(tmp_path / "runs2", f"ft-modumorph-s{seed}", arch="modumorph", seed=seed, evals=())
+    build_report([tmp_path / "runs2"], tmp_path / "report2")
+    grid, m, lo, _ = seen["curves"]["modumorph"]
+    assert np.isnan(m[-1]) and np.isnan(lo[-1]) and np.isfinite(m[0]) and np.isfinite(lo[0])
+    assert grid[np.isfinite(m)].max() <= 25 * 1000
+    assert [x[-1] for x, _ in seen["members"]["modumorph"]] == [25 * 1000, 40 * 1000, 40 * 1000]
 
 
 def test_find_run_dirs(tmp_path):

@@ -6,8 +6,8 @@ from pathlib import Path
 SCRIPT = Path(__file__).resolve().parents[1] / "tools" / "device_job.sh"
 
 
-def job(*args, cwd, out=None):
-    env = {"PATH": "/usr/bin:/bin", **({"OUT": str(out)} if out else {})}
+def job(*args, cwd, out=None, **extra_env):
+    env = {"PATH": "/usr/bin:/bin", **({"OUT": str(out)} if out else {}), **extra_env}
     return subprocess.run(["bash", str(SCRIPT), *args], cwd=cwd, env=env, capture_output=True, text=True)
 
 
@@ -23,3 +23,15 @@ def test_usage_and_missing_out(tmp_path):
     assert r.returncode == 2 and "usage: bash tools/device_job.sh" in r.stderr
     r = job("name", "true", cwd=tmp_path)
     assert r.returncode == 2 and "$OUT is not set" in r.stderr
+
+
+def test_the_time_limit_leaves_room_to_stop_and_pack(tmp_path):
+    # a limit past 565 s is lowered, with a warning, before anything is installed (here nothing installs: no .whl)
+    marker = tmp_path / "ran"
+    r = job("name", "touch", str(marker), cwd=tmp_path, out=tmp_path, DEVICE_JOB_LIMIT_S="588")
+    assert "DEVICE_JOB_LIMIT_S=588 leaves too little" in r.stderr and "565 used" in r.stderr
+    assert r.returncode == 1 and "the wheels did not install" in r.stderr and not marker.exists()
+    r = job("name", "true", cwd=tmp_path, out=tmp_path, DEVICE_JOB_LIMIT_S="9m")
+    assert r.returncode == 2 and "DEVICE_JOB_LIMIT_S=9m: expected whole seconds" in r.stderr
+    r = job("name", "true", cwd=tmp_path, out=tmp_path, DEVICE_JOB_LIMIT_S="500")
+    assert "too little" not in r.stderr and "the wheels did not install" in r.stderr

@@ -5,7 +5,8 @@
 #   fetches the wheels the GPU machine lacks into .whl/ (../shared/tools/gpu-wheels.sh) and copies the original
 #   robots (../shared/unimals_100) into .gpu/: both git-ignored, both carried (carry: [".whl", ".gpu"]).
 # There, in every call:      bash tools/device_job.sh <name> <command ...>
-#   (within DEVICE_JOB_LIMIT_S, default 560 s of the call's 600: then Ctrl-C, so that a run saves a checkpoint)
+#   (within DEVICE_JOB_LIMIT_S, default 560 s of the call's 600, at most 565: then Ctrl-C, so that a run saves a
+#   checkpoint; a command still running 20 s later is killed, and packing its artefacts takes the last seconds)
 #   installs the wheels, points the robots at .gpu/unimals_100, runs the command (XLA's W/I log lines dropped) with
 #   its output in $OUT/<name>.log, then packs the small artefacts of every run under runs/ (config, metrics.csv,
 #   eval/*.json; no checkpoints) into $OUT/<name>-runs.tar.gz: `tar xzf <it> -C results/` unpacks a study's runs
@@ -34,6 +35,15 @@ if [ $continuing = 1 ] && [ ! -d runs ]; then
        "the runs of the earlier calls with it). Nothing was run; the device time left is better spent otherwise." >&2
   exit 3
 fi
+# Ctrl-C at the limit, kill 20 s later (a jitted evaluation sweep does not stop mid-chunk), then ~10 s to pack: a limit
+# above 565 s lets the device tool kill the whole call at 600 s, and then no file comes back (session 20 lost a call's
+# evaluations and metrics that way, with DEVICE_JOB_LIMIT_S=588)
+limit=${DEVICE_JOB_LIMIT_S:-560}
+[[ "$limit" =~ ^[0-9]+$ ]] || { echo "DEVICE_JOB_LIMIT_S=$limit: expected whole seconds (default 560, at most 565)" >&2; exit 2; }
+if [ "$limit" -gt 565 ]; then
+  echo "[device_job] DEVICE_JOB_LIMIT_S=$limit leaves too little of the call's 600 s to stop and pack: 565 used" >&2
+  limit=565
+fi
 python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl \
   || { echo "the wheels did not install: carry .whl (bash tools/device_job.sh prepare)" >&2; exit 1; }
 export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1
@@ -41,10 +51,10 @@ export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1
 nvidia-smi --query-gpu=index,name,memory.used --format=csv,noheader
 # the device tool kills a call at its limit (600 s) and nothing comes back from a killed call: interrupt the command
 # first (Ctrl-C: a run saves a checkpoint, a study waits for its workers to), leaving time to bring the artefacts home
-left=$(( ${DEVICE_JOB_LIMIT_S:-560} - SECONDS ))
+left=$(( limit - SECONDS ))
 timeout -s INT -k 20 $left "$@" 2>&1 | grep -v --line-buffered "^[WI]0000 " | tee "$OUT/$name.log"
 rc=${PIPESTATUS[0]}
-[ $rc -eq 124 ] && echo "[device_job] $name: interrupted after ${DEVICE_JOB_LIMIT_S:-560} s of the call (DEVICE_JOB_LIMIT_S)"
+[ $rc -eq 124 ] && echo "[device_job] $name: interrupted after $limit s of the call (DEVICE_JOB_LIMIT_S)"
 dirs=$(ls -d runs/studies/* runs/* 2>/dev/null | grep -vx runs/studies | paste -sd, -)   # a study's runs: <study>/<run>
 [ -n "$dirs" ] && python3 -m experiments.collect "runs=[$dirs]" out="$OUT/$name-runs.tar.gz" 2>&1 | tail -1
 echo "[device_job] $name: exit status $rc"

@@ -150,20 +150,22 @@ def _learning_curves(doc: Document, ctx: ReportContext) -> None:
         for a, rs in main[t].items():
             cs = [(r.metrics["env_steps"], r.metrics["episode_return"]) for r in rs
                   if "env_steps" in r.metrics and "episode_return" in r.metrics]
-            grid, m, lo, hi, _ = mean_curve(cs)
+            grid, m, lo, hi, n = mean_curve(cs)
             if grid.size:
                 banded = len(cs) >= BAND_MIN_SEEDS
                 curves[a] = (grid, m, lo if banded else None, hi if banded else None)
-                members[a] = [] if banded or len(cs) < 2 else [mean_curve([c])[:2] for c in cs]
+                # each seed thin below BAND_MIN_SEEDS, and wherever some seed ends early (the mean ends with it)
+                thin = len(cs) >= 2 and (not banded or n.min() < len(cs))
+                members[a] = [mean_curve([c])[:2] for c in cs] if thin else []
                 labels[a] = f"{a} ({len(cs)} seed{'s' if len(cs) != 1 else ''})"
         if not curves:
             doc.missing.append(f"{t}: learning curves — no main run has episode returns in metrics.csv")
             continue
         p = plots.mean_curves(curves, doc.out / f"learning_curve_{t}.png", title=f"{t}: training return",
                               labels=labels, members=members)
-        doc.figure(p, f"{t}: mean training episode return against env steps, mean over seeds (band: 95% CI "
-                      f"where at least {BAND_MIN_SEEDS} seeds cover a point; with 2 seeds, each seed as a thin "
-                      f"line; main runs: all train robots and context features).")
+        doc.figure(p, f"{t}: mean training episode return against env steps, mean over seeds where all of them "
+                      f"reach (band: 95% CI from {BAND_MIN_SEEDS} seeds; with 2 seeds, or seeds of unequal length, "
+                      f"each seed as a thin line; main runs: all train robots and context features).")
 
 
 def _returns(doc: Document, ctx: ReportContext) -> None:

@@ -9,7 +9,7 @@
 Per-robot mean returns (the `per_robot` of eval/<tag>.json) are averaged over the seeds (runs) of a group that
 evaluated the robot (`seed_average`); means and 95% CIs are then taken over robots. Normalised returns use the
 per-task ranges of `TASK_RANGES` (nan for a task without one). Learning curves are lightly smoothed, interpolated
-onto a common grid and averaged over the curves covering each grid point.
+onto a common grid and averaged where all the curves reach (the mean ends with the shortest).
 
 Claims (`claim_test`) take seeds as the samples: each seed's mean return over the set's robots (`seed_set_means`;
 runs that share a seed are one sample), the difference of the means over seeds model - baseline with a 95% CI from
@@ -245,8 +245,9 @@ def _smooth(y: np.ndarray, k: int) -> np.ndarray:
 
 
 def mean_curve(curves: Sequence[tuple[np.ndarray, np.ndarray]], points: int = CURVE_POINTS, smooth: bool = True):
-    """(grid, mean, lo, hi, count) of curves (x, y) interpolated onto a common grid; mean over the curves that cover
-    a grid point, lo/hi = mean -/+ ci95 where at least two do (else nan)."""
+    """(grid, mean, lo, hi, count) of curves (x, y) interpolated onto a common grid; count = how many curves cover a
+    grid point. The mean and its band (mean -/+ ci95, from two curves) only where all of them do, else nan: a mean
+    over whichever seeds reach a point would jump where one ends."""
     curves = [(np.asarray(x, float), np.asarray(y, float)) for x, y in curves]
     curves = [(x[np.isfinite(y) & np.isfinite(x)], y[np.isfinite(y) & np.isfinite(x)]) for x, y in curves]
     curves = [(x, y) for x, y in curves if x.size]
@@ -261,6 +262,6 @@ def mean_curve(curves: Sequence[tuple[np.ndarray, np.ndarray]], points: int = CU
         inside = (grid >= x[0]) & (grid <= x[-1])
         ys[i, inside] = np.interp(grid[inside], x, y)
     count = np.isfinite(ys).sum(0)
-    mean = np.array([np.nanmean(c) if n else np.nan for c, n in zip(ys.T, count)])
-    half = np.array([ci95(c[np.isfinite(c)]) if n >= 2 else np.nan for c, n in zip(ys.T, count)])
+    mean = ys.mean(0)                              # nan where a curve is missing
+    half = np.array([ci95(c) if len(curves) >= 2 and np.isfinite(c).all() else np.nan for c in ys.T])
     return grid, mean, mean - half, mean + half, count
