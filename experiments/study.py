@@ -59,9 +59,10 @@ MIN_TRAIN_MIN = 1.0     # with time_limit_min: do not start (compile) a training
 EVAL_SET_MIN = 2.5      # ... nor the evaluation of one set of one run (~100 robots, compilation included, one GPU:
                         # 110-136 s for the 100 train robots, 95 s for the 32 val robots on an H100; 71-80 s and
                         # 54-57 s on an H200)
-EVAL_VARIANTS_MIN = 6.0 # ... and of the 2400 variants, one run per H100 of a 2-GPU host (session 20): env built in
-                        # 77-79 s (the pair search 29-30 s of it), then 2 sweeps of 4800 envs x 1000 steps, the first
-                        # with compilation in 154 s (31 k env steps/s); the second (not measured) ~2 min without compilation
+EVAL_VARIANTS_MIN = 5.5 # ... and of the 2400 variants, one run per H100 of a 2-GPU host (session 20): env built in
+                        # 77-79 s, 29-30 s of it the pair search (none with the searches `device_job.sh prepare`
+                        # keeps in .gpu/pairs), then 2 sweeps of 4800 envs x 1000 steps, the first with compilation
+                        # in 154 s (31 k env steps/s), the second (not measured) ~100 s without it
 
 
 def eval_minutes(name: str) -> float:

@@ -26,6 +26,7 @@ def unimals():
 
 
 ROOT = Path(__file__).resolve().parents[1]
+os.environ["MJX_MORPH_PAIR_CACHE"] = ""     # every test searches its self-collision pairs (none kept on disk)
 os.environ.setdefault("MJX_MORPH_XLA_CACHE", str(ROOT / ".pytest_cache" / "xla"))
 use_compile_cache(os.environ["MJX_MORPH_XLA_CACHE"], min_compile_s=1.0)
 

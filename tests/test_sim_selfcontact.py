@@ -3,6 +3,7 @@ padded models' MJX pairs, and a hand-made robot with one obviously touching and 
 from __future__ import annotations
 
 import dataclasses
+import json
 import warnings
 
 import mujoco
@@ -232,3 +233,41 @@ def test_search_is_shared_by_geometry_and_spread_over_processes(robots):
     for m, f in zip(robots[:3], found):
         assert f == selfcontact.search_pairs(selfcontact.kinematics(compile_model(m)), margin=margin)
     assert selfcontact.search_processes(selfcontact.PARALLEL_FROM - 1) == 1
+
+
+def test_searches_are_kept_on_disk_for_other_processes(tmp_path, monkeypatch):
+    """With $MJX_MORPH_PAIR_CACHE set, a search is written there and read back instead of searched again (another
+    process starts with an empty memory cache); other settings miss; an unreadable file is searched again with a
+    warning and rewritten; set empty, nothing is written."""
+    c, s = np.cos(np.radians(20.0)), np.sin(np.radians(20.0))     # limbs 0 and 1 touch, 2 is far from both
+    m = Morphology(name="kept", height=0.5, limbs=(_limb(0, (0.0, 0.1, 0.0), (0.0, 0.2, 0.0)),
+                                                   _limb(1, (0.0, 0.1 * c, 0.1 * s), (0.0, 0.2 * c, 0.2 * s)),
+                                                   _limb(2, (0.1, 0.0, 0.0), (0.3, 0.0, 0.0))))
+    margin = 0.0137                                        # settings no other test uses
+    monkeypatch.setenv(selfcontact.PAIR_CACHE_ENV, str(tmp_path / "pairs"))
+    monkeypatch.setattr(selfcontact, "_FOUND", {})
+    first = selfcontact.robot_pairs(m, margin=margin)
+    files = list((tmp_path / "pairs").glob("*.json"))
+    assert len(files) == 1 and first.touching
+
+    def no_search(*args, **kwargs):
+        raise AssertionError("searched, though the search was kept on disk")
+    monkeypatch.setattr(selfcontact, "_FOUND", {})         # another process: nothing in memory
+    monkeypatch.setattr(selfcontact, "_search_all", no_search)
+    assert selfcontact.robot_pairs(m, margin=margin) == first
+    with pytest.raises(AssertionError, match="searched"):
+        selfcontact.robot_pairs(m, margin=margin * 2)      # other settings: another file
+    monkeypatch.undo()
+
+    monkeypatch.setenv(selfcontact.PAIR_CACHE_ENV, str(tmp_path / "pairs"))
+    monkeypatch.setattr(selfcontact, "_FOUND", {})
+    files[0].write_text('{"candidates": [[1, 2]], "touch')  # a file cut short
+    with pytest.warns(RuntimeWarning, match="unreadable kept self-collision pair search"):
+        assert selfcontact.robot_pairs(m, margin=margin) == first
+    assert json.loads(files[0].read_text())["boxes"] == first.boxes
+
+    monkeypatch.setenv(selfcontact.PAIR_CACHE_ENV, "")
+    monkeypatch.setattr(selfcontact, "_FOUND", {})
+    assert selfcontact.pair_cache_dir() is None
+    selfcontact.robot_pairs(m, margin=margin * 3)
+    assert len(list((tmp_path / "pairs").glob("*"))) == 1

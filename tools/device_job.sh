@@ -2,10 +2,12 @@
 # Work on a lent GPU machine (the workplace's `device` tool), in two steps.
 #
 # Here, once per checkout:   bash tools/device_job.sh prepare
-#   fetches the wheels the GPU machine lacks into .whl/ (../shared/tools/gpu-wheels.sh) and copies the original
-#   robots (../shared/unimals_100) into .gpu/: both git-ignored, both carried (carry: [".whl", ".gpu"]).
+#   fetches the wheels the GPU machine lacks into .whl/ (../shared/tools/gpu-wheels.sh), copies the original robots
+#   (../shared/unimals_100) into .gpu/ and searches their self-collision pairs into .gpu/pairs (the train, val, test70
+#   and variants sets: ~2 minutes on 2 cores, which the GPU host's env builds then skip; rerun `prepare` after a change
+#   to mjx_morph/sim/selfcontact.py): both git-ignored, both carried (carry: [".whl", ".gpu"]).
 # There, in every call:      bash tools/device_job.sh <name> <command ...>
-#   (within DEVICE_JOB_LIMIT_S, default 560 s of the call's 600, at most 565: then Ctrl-C, so that a run saves a
+#   (within DEVICE_JOB_LIMIT_S, default 560 s of the call's 600, at most 570: then Ctrl-C, so that a run saves a
 #   checkpoint; a command still running 20 s later is killed, and packing its artefacts takes the last seconds)
 #   installs the wheels, points the robots at .gpu/unimals_100, runs the command (XLA's W/I log lines dropped) with
 #   its output in $OUT/<name>.log, then packs the small artefacts of every run under runs/ (config, metrics.csv,
@@ -22,6 +24,16 @@ if [ "$1" = prepare ]; then
   [ -d ../shared ] || { echo "../shared is missing: clone the project beside it" >&2; exit 2; }
   ls .whl/*.whl >/dev/null 2>&1 || ../shared/tools/gpu-wheels.sh || exit 1
   [ -d .gpu/unimals_100 ] || { mkdir -p .gpu && cp -r ../shared/unimals_100 .gpu/; } || exit 1
+  py=python3; [ -x .venv/bin/python ] && py=.venv/bin/python
+  MJX_MORPH_PAIR_CACHE=$PWD/.gpu/pairs MJX_MORPH_UNIMALS=$PWD/.gpu/unimals_100 $py -c '
+import time
+from mjx_morph.sim.selfcontact import robots_pairs
+from mjx_morph.unimal.sets import load_set
+if __name__ == "__main__":      # the search processes are spawned: they import this file
+    for name in ("unimal100/train", "unimal100/val", "unimal100/test70", "unimal100/train/variants"):
+        t = time.perf_counter(); robots = load_set(name).robots; robots_pairs(robots)
+        print(f"self-collision pairs of {name} ({len(robots)} robots): {time.perf_counter() - t:.1f} s")
+' || exit 1
   du -shc .whl .gpu | tail -1 | sed 's/total/to carry (64 MiB at most with the checkout)/'
   exit 0
 fi
@@ -35,19 +47,20 @@ if [ $continuing = 1 ] && [ ! -d runs ]; then
        "the runs of the earlier calls with it). Nothing was run; the device time left is better spent otherwise." >&2
   exit 3
 fi
-# Ctrl-C at the limit, kill 20 s later (a jitted evaluation sweep does not stop mid-chunk), then ~10 s to pack: a limit
-# above 565 s lets the device tool kill the whole call at 600 s, and then no file comes back (session 20 lost a call's
+# Ctrl-C at the limit, kill 20 s later (a jitted evaluation sweep does not stop mid-chunk), then ~5 s to pack: a limit
+# above 570 s lets the device tool kill the whole call at 600 s, and then no file comes back (session 20 lost a call's
 # evaluations and metrics that way, with DEVICE_JOB_LIMIT_S=588)
 limit=${DEVICE_JOB_LIMIT_S:-560}
-[[ "$limit" =~ ^[0-9]+$ ]] || { echo "DEVICE_JOB_LIMIT_S=$limit: expected whole seconds (default 560, at most 565)" >&2; exit 2; }
-if [ "$limit" -gt 565 ]; then
-  echo "[device_job] DEVICE_JOB_LIMIT_S=$limit leaves too little of the call's 600 s to stop and pack: 565 used" >&2
-  limit=565
+[[ "$limit" =~ ^[0-9]+$ ]] || { echo "DEVICE_JOB_LIMIT_S=$limit: expected whole seconds (default 560, at most 570)" >&2; exit 2; }
+if [ "$limit" -gt 570 ]; then
+  echo "[device_job] DEVICE_JOB_LIMIT_S=$limit leaves too little of the call's 600 s to stop and pack: 570 used" >&2
+  limit=570
 fi
 python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl \
   || { echo "the wheels did not install: carry .whl (bash tools/device_job.sh prepare)" >&2; exit 1; }
 export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1
 [ -d .gpu/unimals_100 ] && export MJX_MORPH_UNIMALS=$PWD/.gpu/unimals_100
+[ -d .gpu/pairs ] && export MJX_MORPH_PAIR_CACHE=$PWD/.gpu/pairs     # the searches `prepare` made
 nvidia-smi --query-gpu=index,name,memory.used --format=csv,noheader
 # the device tool kills a call at its limit (600 s) and nothing comes back from a killed call: interrupt the command
 # first (Ctrl-C: a run saves a checkpoint, a study waits for its workers to), leaving time to bring the artefacts home

@@ -46,13 +46,15 @@ bounds, each valid for every pose q of the box:
 Bound (1) is the better one for large boxes, (2) for small ones (it does not count motion along the plane).
 
 The result for a robot is cached per geometry (a hash of its `Kinematics`: variants that change dynamics only share
-it) and per margin, slack and budget, so building several envs of one set in a process computes it once; a set of
-many new geometries is searched in several processes (`robots_pairs`).
+it) and per margin, slack and budget, so building several envs of one set in a process computes it once; it is also
+kept on disk (`pair_cache_dir`: ~/.cache/mjx_morph/pairs, or $MJX_MORPH_PAIR_CACHE), so other processes read it
+instead of searching again; a set of many new geometries is searched in several processes (`robots_pairs`).
 """
 from __future__ import annotations
 
 import dataclasses
 import hashlib
+import json
 import multiprocessing
 import os
 import time
@@ -60,6 +62,7 @@ import warnings
 from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from functools import lru_cache, partial
+from pathlib import Path
 from typing import NamedTuple, Sequence
 
 import mujoco
@@ -381,18 +384,74 @@ def robots_pairs(robots: Sequence[Morphology], margin: float = MARGIN, slack: fl
     of the 2400 variants) share their base robot's search. The searches left run in `processes` processes (default
     `search_processes`): the 900 distinct geometries of the variants take minutes on one core."""
     keys = [(geometry_digest(m), float(margin), float(slack), int(budget), int(seed)) for m in robots]
+    disk = pair_cache_dir()
     todo = {}
     for key, m in zip(keys, robots):
-        if key not in _FOUND:
+        if key not in _FOUND and (disk is None or not _read_cached(disk, key)):
             todo.setdefault(key, _kinematics(m))
     if todo:
         n = search_processes(len(todo)) if processes is None else max(1, min(int(processes), len(todo)))
         for key, found in zip(todo, _search_all(list(todo.values()), n, margin, slack, budget, seed)):
             _FOUND[key] = found
+            if disk is not None:
+                _write_cached(disk, key, found)
     return [_FOUND[key] for key in keys]
 
 
 _FOUND: dict[tuple, RobotPairs] = {}     # (geometry digest, margin, slack, budget, seed) -> the search's outcome
+
+#: where searches are kept between processes: $MJX_MORPH_PAIR_CACHE ("" for none), else ~/.cache/mjx_morph/pairs
+PAIR_CACHE_ENV = "MJX_MORPH_PAIR_CACHE"
+
+
+def pair_cache_dir() -> Path | None:
+    """The folder of the searches kept on disk (one JSON file per geometry and settings, valid for this version of
+    this module alone), or None when `$MJX_MORPH_PAIR_CACHE` is set empty."""
+    path = os.environ.get(PAIR_CACHE_ENV, str(Path("~/.cache/mjx_morph/pairs")))
+    return Path(path).expanduser() if path else None
+
+
+@lru_cache(maxsize=1)
+def _code_digest() -> str:
+    """A hash of this module's source: a search kept by other code is not read."""
+    return hashlib.sha256(Path(__file__).read_bytes()).hexdigest()[:16]
+
+
+def _cache_file(disk: Path, key: tuple) -> Path:
+    return disk / (hashlib.sha256(repr((key, _code_digest())).encode()).hexdigest() + ".json")
+
+
+def _read_cached(disk: Path, key: tuple) -> bool:
+    """Put the search kept on disk for `key` into `_FOUND`; False when there is none (or it cannot be read: it is
+    searched again and rewritten, with a warning)."""
+    f = _cache_file(disk, key)
+    if not f.exists():
+        return False
+    try:
+        d = json.loads(f.read_text())
+        pairs = lambda name: frozenset((int(a), int(b)) for a, b in d[name])
+        _FOUND[key] = RobotPairs(candidates=tuple((int(a), int(b)) for a, b in d["candidates"]),
+                                 touching=pairs("touching"), unresolved=pairs("unresolved"), boxes=int(d["boxes"]))
+        return True
+    except (OSError, ValueError, KeyError, TypeError) as e:
+        warnings.warn(f"{f}: unreadable kept self-collision pair search ({type(e).__name__}: {e}); searching again",
+                      RuntimeWarning, stacklevel=3)
+        return False
+
+
+def _write_cached(disk: Path, key: tuple, found: RobotPairs) -> None:
+    """Keep `found` on disk (written whole or not at all; a folder that cannot be written only warns)."""
+    f = _cache_file(disk, key)
+    try:
+        disk.mkdir(parents=True, exist_ok=True)
+        tmp = f.with_suffix(f".{os.getpid()}.tmp")
+        tmp.write_text(json.dumps({"candidates": [list(p) for p in found.candidates],
+                                   "touching": sorted(list(p) for p in found.touching),
+                                   "unresolved": sorted(list(p) for p in found.unresolved), "boxes": found.boxes}))
+        os.replace(tmp, f)
+    except OSError as e:
+        warnings.warn(f"{disk}: cannot keep the self-collision pair search there ({e}); set ${PAIR_CACHE_ENV} to "
+                      f"another folder, or empty for none", RuntimeWarning, stacklevel=3)
 
 
 @lru_cache(maxsize=None)
