@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from mujoco.mjx._src import collision_driver
 
-from mjx_morph.sim import fidelity, padding, selfcontact
+from mjx_morph.sim import fidelity, padding, processes, selfcontact
 from mjx_morph.sim.model import build_stacked_model, compile_padded, self_pair_summary
 from mjx_morph.sim.padding import SolverOptions
 from mjx_morph.sim.supertree import build_shared_tree
@@ -232,7 +232,7 @@ def test_search_is_shared_by_geometry_and_spread_over_processes(robots):
         found = selfcontact.robots_pairs(robots[:3], margin=margin, processes=2)
     for m, f in zip(robots[:3], found):
         assert f == selfcontact.search_pairs(selfcontact.kinematics(compile_model(m)), margin=margin)
-    assert selfcontact.search_processes(selfcontact.PARALLEL_FROM - 1) == 1
+    assert processes.processes_for(processes.PARALLEL_FROM - 1) == 1 == processes.processes_for(499, 500)
 
 
 def test_searches_are_kept_on_disk_for_other_processes(tmp_path, monkeypatch):

@@ -186,3 +186,39 @@ def test_reward_and_terminations():
     ox, _, oz = inc.origin
     g = float(inc.ground_height(terrain.NoTerrain(), jnp.float32(-71.89 - ox), jnp.float32(0.0))) + oz
     np.testing.assert_allclose(g, 1 + np.tan(np.radians(10)) * np.floor(-718.9) / 10, atol=1e-3)
+
+
+def test_put_models_spread_over_processes_gives_what_one_process_does(monkeypatch):
+    """MJX's put_model of many robots runs in several processes (`model.put_models`): the same leaves, in float64
+    too under jax.enable_x64 (as sim.fidelity builds its reference models), and no fallback warning."""
+    import warnings
+    rs = _robots(3)
+    tree = supertree.build_shared_tree(rs)
+    mjm = model.compile_padded(rs, tree, fidelity.FLOOR_WORLD, SolverOptions())
+    one = model.put_models(mjm)                                     # 3 < PUT_PARALLEL_FROM: this process
+    monkeypatch.setattr(model, "PUT_PARALLEL_FROM", 2)
+    monkeypatch.setattr(model.processes, "os", _TwoCores())
+    for x64 in (False, True):
+        with jax.enable_x64(x64), warnings.catch_warnings():
+            warnings.simplefilter("error", RuntimeWarning)       # a broken pool would warn
+            many = model.put_models(mjm)
+            ref = one if not x64 else [model._put_model((mm, True, mm.signature)) for mm in mjm]
+        for a, b in zip(ref, many):
+            la, ta = jax.tree_util.tree_flatten(a)
+            lb, tb = jax.tree_util.tree_flatten(b)
+            assert ta == tb and len(la) > 50
+            for x, y in zip(la, lb):
+                assert np.asarray(x).dtype == np.asarray(y).dtype and np.array_equal(x, y)
+        assert np.asarray(many[0].body_mass).dtype == (np.float64 if x64 else np.float32)
+        assert many[0].signature == mjm[0].signature != 0               # lost in pickling, put back
+
+
+class _TwoCores:
+    """`os` with 2 usable cores, whatever this machine has (processes_for reads the affinity)."""
+    def __getattr__(self, name):
+        import os
+        return getattr(os, name)
+
+    @staticmethod
+    def sched_getaffinity(pid):
+        return {0, 1}

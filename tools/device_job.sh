@@ -4,8 +4,8 @@
 # Here, once per checkout:   bash tools/device_job.sh prepare
 #   fetches the wheels the GPU machine lacks into .whl/ (../shared/tools/gpu-wheels.sh), copies the original robots
 #   (../shared/unimals_100) into .gpu/ and searches their self-collision pairs into .gpu/pairs (the train, val, test70
-#   and variants sets: ~2 minutes on 2 cores, which the GPU host's env builds then skip; rerun `prepare` after a change
-#   to mjx_morph/sim/selfcontact.py): both git-ignored, both carried (carry: [".whl", ".gpu"]).
+#   and variants sets: ~1 minute on 2 cores, which the GPU host's env builds then skip; they are read only by the
+#   same version of mjx_morph/sim/selfcontact.py, so rerun `prepare` after a change to it): both git-ignored, both carried (carry: [".whl", ".gpu"]).
 # There, in every call:      bash tools/device_job.sh <name> <command ...>
 #   (within DEVICE_JOB_LIMIT_S, default 560 s of the call's 600, at most 570: then Ctrl-C, so that a run saves a
 #   checkpoint; a command still running 20 s later is killed, and packing its artefacts takes the last seconds)
@@ -25,6 +25,7 @@ if [ "$1" = prepare ]; then
   ls .whl/*.whl >/dev/null 2>&1 || ../shared/tools/gpu-wheels.sh || exit 1
   [ -d .gpu/unimals_100 ] || { mkdir -p .gpu && cp -r ../shared/unimals_100 .gpu/; } || exit 1
   py=python3; [ -x .venv/bin/python ] && py=.venv/bin/python
+  rm -rf .gpu/pairs      # the searches of an earlier version of selfcontact.py are never read again: not carried
   MJX_MORPH_PAIR_CACHE=$PWD/.gpu/pairs MJX_MORPH_UNIMALS=$PWD/.gpu/unimals_100 $py -c '
 import time
 from mjx_morph.sim.selfcontact import robots_pairs

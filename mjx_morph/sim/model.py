@@ -37,7 +37,7 @@ from mujoco import mjx
 from ..unimal.mjcf import compile_model
 from ..layout import CTX_DIM, NUM_ACTIONS, NUM_TOKENS, OBS_DIM, Robots
 from ..unimal.morphology import Morphology
-from . import padding, selfcontact
+from . import padding, processes, selfcontact
 from .padding import SolverOptions, WorldSpec
 from .supertree import SharedTree, build_shared_tree
 
@@ -163,6 +163,28 @@ def compile_padded(robots: Sequence[Morphology], tree: SharedTree, world: WorldS
     return out
 
 
+def put_models(mjm: Sequence[mujoco.MjModel]) -> list[mjx.Model]:
+    """`mjx.put_model` of each compiled robot on the CPU, with numpy leaves (`_stack` stacks them). It costs ~20 ms
+    a robot (JAX's dispatch per field), so from `PUT_PARALLEL_FROM` robots on it runs in one process per core."""
+    x64 = jax.dtypes.canonicalize_dtype(np.float64) == np.float64       # under jax.enable_x64 (sim.fidelity)
+    jobs = [(mm, x64, int(mm.signature)) for mm in mjm]
+    return processes.process_map(_put_model, jobs, processes.processes_for(len(jobs), PUT_PARALLEL_FROM),
+                                 "MJX's put_model")
+
+
+#: robots from which `put_models` spreads over processes: below, starting them (their JAX imports) costs more than
+#: it saves
+PUT_PARALLEL_FROM = 500
+
+
+def _put_model(job: tuple[mujoco.MjModel, bool, int]) -> mjx.Model:
+    mm, x64, signature = job
+    with jax.enable_x64(x64):
+        mx = mjx.put_model(mm, device=jax.local_devices(backend="cpu")[0], impl="jax")
+    # a pickled MjModel (one sent to a process) comes back with signature 0: the compiled model's, as MJX keeps it
+    return jax.tree_util.tree_map(np.asarray, mx.replace(signature=signature))
+
+
 def _stack(models: list[mjx.Model]) -> tuple[mjx.Model, mjx.Model]:
     leaves0, treedef = jax.tree_util.tree_flatten(models[0])
     all_leaves = [leaves0]
@@ -203,11 +225,7 @@ def build_stacked_model(robots: Sequence[Morphology], world: WorldSpec = WorldSp
     tree = tree or build_shared_tree(robots)
     options, search = _with_self_pairs(robots, tree, options, budget=self_pair_budget)
     mjm = compile_padded(robots, tree, world, options)
-    cpu = jax.local_devices(backend="cpu")[0]      # this process's (jax.devices: every process's, with several)
-    mxs = []
-    for mm in mjm:
-        mx = mjx.put_model(mm, device=cpu, impl="jax")
-        mxs.append(mx)
+    mxs = put_models(mjm)
     rb = np.max(np.stack([np.asarray(mx._impl.geom_rbound_hfield) for mx in mxs]), axis=0)
     mxs = [mx.replace(_impl=mx._impl.replace(geom_rbound_hfield=rb)) for mx in mxs]
     # inert geoms: never active (margin only decides activation in MJX; collision functions ignore it), and never

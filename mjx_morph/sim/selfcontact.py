@@ -55,12 +55,9 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
-import multiprocessing
 import os
 import time
 import warnings
-from concurrent.futures import ProcessPoolExecutor
-from concurrent.futures.process import BrokenProcessPool
 from functools import lru_cache, partial
 from pathlib import Path
 from typing import NamedTuple, Sequence
@@ -70,6 +67,7 @@ import numpy as np
 
 from ..unimal.mjcf import compile_model
 from ..unimal.morphology import Morphology
+from .processes import process_map, processes_for
 from .supertree import SharedTree
 
 MARGIN = 0.01          # m: a pair is kept when its geoms can come this close
@@ -79,8 +77,6 @@ RANDOM_SAMPLES = 128   # random poses per pair tried before the search (finds mo
 DESCENT_STARTS = 8     # ... the best of them then descend along the gradient of the distance
 DESCENT_STEPS = 40
 CHUNK = 32_768        # boxes evaluated at once (bounds the memory of one evaluation)
-PARALLEL_FROM = 16     # robot searches in one call from which they are spread over processes
-MAX_PROCESSES = 16     # ... over at most this many (the GPU machines have 16 cores per GPU)
 
 
 # ---- the robot's kinematics ---------------------------------------------------------------------------------------
@@ -382,7 +378,7 @@ def robots_pairs(robots: Sequence[Morphology], margin: float = MARGIN, slack: fl
     """`robot_pairs` of each robot. The outcome depends on the robot's `Kinematics` alone, so it is cached per
     geometry (`geometry_digest`): robots that differ only in dynamics (density, gear, armature, damping: two thirds
     of the 2400 variants) share their base robot's search. The searches left run in `processes` processes (default
-    `search_processes`): the 900 distinct geometries of the variants take minutes on one core."""
+    `processes.processes_for`): the 900 distinct geometries of the variants take minutes on one core."""
     keys = [(geometry_digest(m), float(margin), float(slack), int(budget), int(seed)) for m in robots]
     disk = pair_cache_dir()
     todo = {}
@@ -390,7 +386,7 @@ def robots_pairs(robots: Sequence[Morphology], margin: float = MARGIN, slack: fl
         if key not in _FOUND and (disk is None or not _read_cached(disk, key)):
             todo.setdefault(key, _kinematics(m))
     if todo:
-        n = search_processes(len(todo)) if processes is None else max(1, min(int(processes), len(todo)))
+        n = processes_for(len(todo)) if processes is None else max(1, min(int(processes), len(todo)))
         for key, found in zip(todo, _search_all(list(todo.values()), n, margin, slack, budget, seed)):
             _FOUND[key] = found
             if disk is not None:
@@ -472,37 +468,11 @@ def geometry_digest(m: Morphology) -> str:
     return h.hexdigest()
 
 
-def search_processes(searches: int) -> int:
-    """Processes for `searches` robot searches: 1 below `PARALLEL_FROM` (starting a process costs ~1 s, its
-    imports), else one per core this process may use, at most `MAX_PROCESSES`."""
-    if searches < PARALLEL_FROM:
-        return 1
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
-    return max(1, min(cores, MAX_PROCESSES, searches))
-
-
 def _search_all(kins: list[Kinematics], processes: int, margin: float, slack: float, budget: int,
                 seed: int) -> list[RobotPairs]:
-    """`search_pairs` of each robot, in this process or in `processes` fresh ones ("spawn": a child forked from a
-    process running JAX's threads could deadlock). A pool that breaks (e.g. a script without the
-    `if __name__ == "__main__":` guard that "spawn" needs) leaves the searches to this process, with a warning."""
+    """`search_pairs` of each robot, in `processes` processes (`processes.process_map`)."""
     search = partial(search_pairs, margin=margin, slack=slack, budget=budget, seed=seed)
-    if processes > 1:
-        try:
-            with ProcessPoolExecutor(processes, mp_context=multiprocessing.get_context("spawn"),
-                                     initializer=_cpu_only) as pool:
-                return list(pool.map(search, kins, chunksize=max(1, len(kins) // (4 * processes))))
-        except BrokenProcessPool as e:
-            warnings.warn(f"the self-collision pair search could not use {processes} processes ({e}); searching "
-                          f"the {len(kins)} robots in this one", RuntimeWarning, stacklevel=3)
-    return [search(kin) for kin in kins]
-
-
-def _cpu_only() -> None:
-    """A search process never uses JAX; should anything initialise it there, it stays off the accelerator, whose
-    memory the training process holds."""
-    import jax
-    jax.config.update("jax_platforms", "cpu")
+    return process_map(search, kins, processes, "the self-collision pair search")
 
 
 def pair_gap(kin: Kinematics, q: np.ndarray, pa: np.ndarray, pb: np.ndarray) -> np.ndarray:
