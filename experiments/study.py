@@ -56,18 +56,19 @@ from . import cli
 
 DEFAULT_ARCHS = ["rmomo", "modumorph"]
 MIN_TRAIN_MIN = 1.0     # with time_limit_min: do not start (compile) a training with less time than this left
-EVAL_SET_MIN = 2.5      # ... nor the evaluation of one set of one run (~100 robots, compilation included, one GPU:
-                        # 110-136 s for the 100 train robots, 95 s for the 32 val robots on an H100; 71-80 s and
-                        # 54-57 s on an H200)
-EVAL_VARIANTS_MIN = 5.5 # ... and of the 2400 variants, one run per H100 of a 2-GPU host (session 20): env built in
-                        # 77-79 s, 29-30 s of it the pair search (none with the searches `device_job.sh prepare`
-                        # keeps in .gpu/pairs), then 2 sweeps of 4800 envs x 1000 steps, the first with compilation
-                        # in 154 s (31 k env steps/s), the second (not measured) ~100 s without it
+#: ... nor the evaluation of one set of one run, compilation included, measured one run per GPU (the longer of
+#: H100 and H200): train (100 robots) 110-136 s on an H100, 71-80 s on an H200; val (32) 95 s and 54-57 s; test70
+#: 63-75 s on both (sessions 19-20), 10-12 s of it the pair search that `device_job.sh prepare` now keeps in
+#: .gpu/pairs; the variants (2400): env built in 77-79 s on an H100 host (29-30 s of it the search; ~25 s without it,
+#: `put_model` spread over the cores: estimated), then 2 sweeps of 4800 envs x 1000 steps, the first with compilation
+#: in 154 s (31 k env steps/s), the second ~100 s (estimated: it was cut by the call's end)
+EVAL_MINUTES = {"train": 2.5, "val": 1.75, "test": 1.25, "variants": 5.0}
+EVAL_SET_MIN = 2.5      # ... and of any other set (the largest of the ~100-robot sets)
 
 
 def eval_minutes(name: str) -> float:
     """The time a study's time limit sets aside for evaluating set `name` of one run."""
-    return EVAL_VARIANTS_MIN if name == "variants" else EVAL_SET_MIN
+    return EVAL_MINUTES.get(name, EVAL_SET_MIN)
 
 
 @dataclasses.dataclass

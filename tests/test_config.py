@@ -171,7 +171,7 @@ def test_study_workers_split_the_runs_one_gpu_each(capsys, monkeypatch, unimals)
 
 
 def test_study_time_limit_evaluates_what_fits(capsys, monkeypatch, tmp_path, unimals):
-    """With time_limit_min, a finished batch gets as many (set, run) evaluations as fit (EVAL_SET_MIN each), the study
+    """With time_limit_min, a finished batch gets as many (set, run) evaluations as fit (eval_minutes each), the study
     file's sets in order over the seeds, one evaluate_run per run; the rest are named and left for the rerun; with
     no time left none runs."""
     from types import SimpleNamespace
@@ -191,12 +191,13 @@ def test_study_time_limit_evaluates_what_fits(capsys, monkeypatch, tmp_path, uni
     monkeypatch.setattr(study, "use_compile_cache", lambda path: None)
     monkeypatch.setattr(study, "time", SimpleNamespace(monotonic=lambda: 0.0))   # minutes left = the limit
     args = ["ab_rmemo_context", "only=[no_context]", "seeds=[0,1]", f"out={tmp_path}"]
-    assert study.main([*args, f"time_limit_min={2.2 * study.EVAL_SET_MIN}"]) == 0       # 2 of 4 fit: val, both seeds
+    val, train = study.eval_minutes("val"), study.eval_minutes("train")
+    assert study.main([*args, f"time_limit_min={2 * val + 0.9 * train}"]) == 0       # 2 of 4 fit: val, both seeds
     assert calls == [("ft-rmemo-no_context-s0", ["val"]), ("ft-rmemo-no_context-s1", ["val"])]
     out = capsys.readouterr().out
     assert "ft-rmemo-no_context-s0: train" in out and "left for the rerun" in out and "[study] done" not in out
     calls.clear()
-    assert study.main([*args, f"time_limit_min={0.5 * study.EVAL_SET_MIN}"]) == 0
+    assert study.main([*args, f"time_limit_min={0.9 * val}"]) == 0
     assert calls == [] and "left for the rerun" in capsys.readouterr().out
     assert study.main([*args, "time_limit_min=100"]) == 0
     assert calls == [("ft-rmemo-no_context-s0", ["val", "train"]), ("ft-rmemo-no_context-s1", ["val", "train"])]
@@ -204,16 +205,18 @@ def test_study_time_limit_evaluates_what_fits(capsys, monkeypatch, tmp_path, uni
     # sets already evaluated take none of the time: with val done for both seeds, one slot goes to s0's train
     calls.clear()
     monkeypatch.setattr(study, "evaluated", lambda d, s, step, episodes: s == "val")
-    assert study.main([*args, f"time_limit_min={1.2 * study.EVAL_SET_MIN}"]) == 0
+    assert study.main([*args, f"time_limit_min={1.9 * train}"]) == 0
     assert calls == [("ft-rmemo-no_context-s0", ["train"])]
     out = capsys.readouterr().out
     assert "ft-rmemo-no_context-s1: val already evaluated at checkpoint 245" in out
     assert "ft-rmemo-no_context-s1: train left for the rerun" in out
-    # the variants take longer than a set of ~100 robots: time for them and one more set is not time for two more
+    # each set its own time: the variants take longer than test70, so time for the variants and part of test70
+    # evaluates the variants alone, and an unknown set gets the largest of the small sets' time
     calls.clear()
     monkeypatch.setattr(study, "evaluated", lambda d, s, step, episodes: False)
-    limit = study.eval_minutes("variants") + 0.5 * study.EVAL_SET_MIN
-    assert 2 * study.EVAL_SET_MIN <= limit
+    limit = study.eval_minutes("variants") + 0.9 * study.eval_minutes("test")
+    assert 2 * study.eval_minutes("train") <= limit and study.eval_minutes("unimal100/test") == study.EVAL_SET_MIN
+    assert study.eval_minutes("test") < study.eval_minutes("val") < study.eval_minutes("train")
     assert study.main(["paper", "archs=[rmomo]", "seeds=[0]", "evaluate=[variants,test]", f"out={tmp_path}",
                        f"time_limit_min={limit}", "--", "stop_at=245"]) == 0
     assert calls == [("ft-rmomo-main-s0", ["variants"])]
