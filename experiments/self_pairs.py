@@ -14,6 +14,7 @@ the command then exits with status 1.
 from __future__ import annotations
 
 import dataclasses
+import os
 import sys
 import time
 
@@ -46,6 +47,8 @@ def measure(a: SelfPairsConfig) -> None:
     rs = load_set(a.set).robots
     tree = build_shared_tree(rs)
     n = len(rs)
+    # a check of the search and its time: searched here, not read from the searches kept on disk
+    os.environ[selfcontact.PAIR_CACHE_ENV] = ""
     cut = selfcontact.find_slot_pairs(rs, tree, a.margin, a.slack, a.budget)      # cold: nothing cached yet
     per_robot = [selfcontact.robot_pairs(m, a.margin, a.slack, a.budget) for m in rs]
     touched = {}
