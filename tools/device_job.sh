@@ -61,7 +61,10 @@ python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upg
   || { echo "the wheels did not install: carry .whl (bash tools/device_job.sh prepare)" >&2; exit 1; }
 export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1
 [ -d .gpu/unimals_100 ] && export MJX_MORPH_UNIMALS=$PWD/.gpu/unimals_100
-[ -d .gpu/pairs ] && export MJX_MORPH_PAIR_CACHE=$PWD/.gpu/pairs     # the searches `prepare` made
+if [ -d .gpu/pairs ]; then      # the searches `prepare` made (read only if selfcontact.py has not changed since)
+  export MJX_MORPH_PAIR_CACHE=$PWD/.gpu/pairs
+  echo "[device_job] $(ls .gpu/pairs | wc -l) self-collision pair searches kept in .gpu/pairs"
+fi
 nvidia-smi --query-gpu=index,name,memory.used --format=csv,noheader
 # the device tool kills a call at its limit (600 s) and nothing comes back from a killed call: interrupt the command
 # first (Ctrl-C: a run saves a checkpoint, a study waits for its workers to), leaving time to bring the artefacts home
