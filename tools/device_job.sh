@@ -51,11 +51,12 @@ fi
 # Ctrl-C at the limit, kill 20 s later (a jitted evaluation sweep does not stop mid-chunk), then ~5 s to pack: a limit
 # above 570 s lets the device tool kill the whole call at 600 s, and then no file comes back (session 20 lost a call's
 # evaluations and metrics that way, with DEVICE_JOB_LIMIT_S=588)
+most=570
 limit=${DEVICE_JOB_LIMIT_S:-560}
-[[ "$limit" =~ ^[0-9]+$ ]] || { echo "DEVICE_JOB_LIMIT_S=$limit: expected whole seconds (default 560, at most 570)" >&2; exit 2; }
-if [ "$limit" -gt 570 ]; then
-  echo "[device_job] DEVICE_JOB_LIMIT_S=$limit leaves too little of the call's 600 s to stop and pack: 570 used" >&2
-  limit=570
+[[ "$limit" =~ ^[0-9]+$ ]] || { echo "DEVICE_JOB_LIMIT_S=$limit: expected whole seconds (default 560, at most $most)" >&2; exit 2; }
+if [ "$limit" -gt $most ]; then
+  echo "[device_job] DEVICE_JOB_LIMIT_S=$limit leaves too little of the call's 600 s to stop and pack: $most used" >&2
+  limit=$most
 fi
 python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl \
   || { echo "the wheels did not install: carry .whl (bash tools/device_job.sh prepare)" >&2; exit 1; }

@@ -383,7 +383,12 @@ def robots_pairs(robots: Sequence[Morphology], margin: float = MARGIN, slack: fl
     disk = pair_cache_dir()
     todo = {}
     for key, m in zip(keys, robots):
-        if key not in _FOUND and (disk is None or not _read_cached(disk, key)):
+        if key in _FOUND:
+            continue
+        kept = None if disk is None else _read_cached(disk, key)
+        if kept is not None:
+            _FOUND[key] = kept
+        else:
             todo.setdefault(key, _kinematics(m))
     if todo:
         n = processes_for(len(todo)) if processes is None else max(1, min(int(processes), len(todo)))
@@ -417,22 +422,21 @@ def _cache_file(disk: Path, key: tuple) -> Path:
     return disk / (hashlib.sha256(repr((key, _code_digest())).encode()).hexdigest() + ".json")
 
 
-def _read_cached(disk: Path, key: tuple) -> bool:
-    """Put the search kept on disk for `key` into `_FOUND`; False when there is none (or it cannot be read: it is
-    searched again and rewritten, with a warning)."""
+def _read_cached(disk: Path, key: tuple) -> RobotPairs | None:
+    """The search kept on disk for `key`; None when there is none (or it cannot be read: it is searched again and
+    rewritten, with a warning)."""
     f = _cache_file(disk, key)
     if not f.exists():
-        return False
+        return None
     try:
         d = json.loads(f.read_text())
         pairs = lambda name: frozenset((int(a), int(b)) for a, b in d[name])
-        _FOUND[key] = RobotPairs(candidates=tuple((int(a), int(b)) for a, b in d["candidates"]),
-                                 touching=pairs("touching"), unresolved=pairs("unresolved"), boxes=int(d["boxes"]))
-        return True
+        return RobotPairs(candidates=tuple((int(a), int(b)) for a, b in d["candidates"]),
+                          touching=pairs("touching"), unresolved=pairs("unresolved"), boxes=int(d["boxes"]))
     except (OSError, ValueError, KeyError, TypeError) as e:
         warnings.warn(f"{f}: unreadable kept self-collision pair search ({type(e).__name__}: {e}); searching again",
                       RuntimeWarning, stacklevel=3)
-        return False
+        return None
 
 
 def _write_cached(disk: Path, key: tuple, found: RobotPairs) -> None:
