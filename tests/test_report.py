@@ -154,7 +154,7 @@ def test_returns_table_is_mean_and_ci_over_robots_of_seed_means(report):
             lo, hi = TASK_RANGES["ft"]
             assert float(r[f"{tag}_normalised"]) == pytest.approx(((v - lo) / (hi - lo)).mean(), rel=1e-9)
             assert int(r[f"{tag}_robots"]) == len(v)
-        assert r["seeds"] == "2"
+        assert r["seeds"] == r["test_seeds"] == r["variants_seeds"] == "2"
     # one seed on incline: the CI equals the file's ci95 over robots
     r = rows[("incline", "rmomo")]
     v = np.array(list(d[("incline", "rmomo", 0)]["test"].values()))
@@ -503,3 +503,16 @@ def test_runs_of_one_seed_are_one_sample_in_the_claims(tmp_path):
     assert rows[("ft", "rmomo", "test")]["model_seeds"] == "2"
     text = (tmp_path / "out" / "report.md").read_text()
     assert "ft, rmomo: 2 runs of seed 0" in text and "count as one seed in the claims" in text
+
+
+def test_returns_table_counts_the_seeds_of_each_set(tmp_path):
+    """A set that only some seeds evaluated says so: its own seed count in returns.csv, "[k of n seeds]" in the
+    table."""
+    make_run(tmp_path / "runs", "ft-rmomo-s0", seed=0, evals=("test", "variants"), metrics=False)
+    make_run(tmp_path / "runs", "ft-rmomo-s1", seed=1, evals=("variants",), metrics=False)
+    build_report([tmp_path / "runs"], tmp_path / "out")
+    row = _csv(tmp_path / "out" / "returns.csv")[0]
+    assert (row["seeds"], row["test_seeds"], row["variants_seeds"], row["train_seeds"]) == ("2", "1", "2", "0")
+    line = next(ln for ln in (tmp_path / "out" / "report.md").read_text().splitlines() if ln.startswith("| ft | rmomo"))
+    test_cell, variants_cell = line.split(" | ")[3:5]
+    assert test_cell.endswith("[1 of 2 seeds]") and "seeds" not in variants_cell

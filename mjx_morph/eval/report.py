@@ -168,11 +168,19 @@ def _learning_curves(doc: Document, ctx: ReportContext) -> None:
                       f"each seed as a thin line; main runs: all train robots and context features).")
 
 
+def _set_cell(x: Stat | None, seeds: int) -> str:
+    """A returns-table cell: mean ± CI (normalised), and how many of the row's seeds evaluated the set when not all."""
+    if x is None:
+        return "–"
+    part = f" [{x.seeds} of {seeds} seeds]" if x.seeds != seeds else ""
+    return f"{pm(x.mean, x.ci)} ({pm(x.norm, x.norm_ci, 3)}){part}"
+
+
 def _returns(doc: Document, ctx: ReportContext) -> None:
     tasks, main = ctx.tasks, ctx.main
     header = ["task", "arch", "seeds"]
     for s in SETS:
-        header += [f"{s}_return", f"{s}_ci95", f"{s}_normalised", f"{s}_normalised_ci95", f"{s}_robots"]
+        header += [f"{s}_return", f"{s}_ci95", f"{s}_normalised", f"{s}_normalised_ci95", f"{s}_robots", f"{s}_seeds"]
     rows, md, present = [], [], set()
     change_rows = []
     for t in tasks:
@@ -195,12 +203,11 @@ def _returns(doc: Document, ctx: ReportContext) -> None:
             row, mrow = [t, a, seeds], [t, a, seeds]
             for s in SETS:
                 x = st[s]
-                row += [x.mean, x.ci, x.norm, x.norm_ci, x.robots] if x else [float("nan")] * 4 + [0]
+                row += [x.mean, x.ci, x.norm, x.norm_ci, x.robots, x.seeds] if x else [float("nan")] * 4 + [0, 0]
                 if x:
                     present.add(s)
             rows.append(row)
-            md.append(mrow + [(f"{pm(st[s].mean, st[s].ci)} ({pm(st[s].norm, st[s].norm_ci, 3)})" if st[s] else "–")
-                              for s in SETS])
+            md.append(mrow + [_set_cell(st[s], seeds) for s in SETS])
             set_series[a] = ([st[s].mean if st[s] else np.nan for s in sets_here],
                              [st[s].ci if st[s] else np.nan for s in sets_here])
             if cstats[a]:
