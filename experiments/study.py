@@ -17,6 +17,11 @@ fit, `eval_minutes` per set and run, in the study file's order of sets over the 
 
     python -m experiments.study ab_rmomo_cell only=[scale_before,scale_after] seeds=[0,1] time_limit_min=9
 
+In the last minutes of a run's training (evaluate.PrepareEvaluation: about 4 minutes of iterations left) a background
+thread builds the envs of the sets the time limit will let it evaluate and compiles their sweeps, on the host's CPU
+while the GPU trains; the evaluations then start at once, and the time limit counts them at `EVAL_MINUTES_PREPARED`.
+`prepare_eval=false` turns this off.
+
 The seeds of a run train side by side in one program (`seeds=[...]` of experiments.run; those at the same checkpoint
 together), unless side_by_side=false. Afterwards: python -m experiments.report runs=[<out>/<study>] out=<dir>.
 
@@ -34,6 +39,7 @@ On several hosts (the same command on each, with the distributed settings of exp
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import os
 import shutil
@@ -47,8 +53,9 @@ from typing import List, Optional
 import yaml
 from omegaconf import MISSING
 
-from mjx_morph.eval.evaluate import evaluate_run, evaluated, resolve_set
-from mjx_morph.run import CONF_DIR, RunDir, compose_run_config, distributed, register, train, use_compile_cache
+from mjx_morph.eval.evaluate import PrepareEvaluation, evaluate_run, evaluated, resolve_set, wait_for_preparation
+from mjx_morph.run import (CONF_DIR, RunDir, compose_run_config, default_callbacks, distributed, register, to_schema,
+                           train, use_compile_cache)
 from mjx_morph.sim.env import EnvConfig
 
 from . import cli
@@ -64,10 +71,19 @@ MIN_TRAIN_MIN = 1.0     # with time_limit_min: do not start (compile) a training
 #: in 154 s (31 k env steps/s), the second ~100 s (estimated: it was cut by the call's end)
 EVAL_MINUTES = {"train": 2.5, "val": 1.75, "test": 1.25, "variants": 5.0}
 EVAL_SET_MIN = 2.5      # ... and of any other set (the largest of the ~100-robot sets)
+#: ... and when its env and sweep were prepared while the run trained (PrepareEvaluation). Estimated from the sweeps'
+#: measured rates without compilation (session 21, H100s): the variants' 2 x 4.8 M env steps at 49 k/s, 196 s;
+#: test70's 2 x 280 k at 21 k/s, 27 s; the others from the sets' sizes; with ~30 s for loading the checkpoint and
+#: margin. Not yet measured as a whole.
+EVAL_MINUTES_PREPARED = {"train": 1.0, "val": 0.75, "test": 1.0, "variants": 4.0}
+EVAL_SET_MIN_PREPARED = 1.0
 
 
-def eval_minutes(name: str) -> float:
-    """The time a study's time limit sets aside for evaluating set `name` of one run."""
+def eval_minutes(name: str, prepared: bool = False) -> float:
+    """The time a study's time limit sets aside for evaluating set `name` of one run (`prepared`: its env and sweep
+    were prepared while the run trained)."""
+    if prepared:
+        return EVAL_MINUTES_PREPARED.get(name, EVAL_SET_MIN_PREPARED)
     return EVAL_MINUTES.get(name, EVAL_SET_MIN)
 
 
@@ -89,6 +105,8 @@ class StudyConfig:
     workers: Optional[int] = None       # processes, one per GPU, each training every workers-th run (None: one per
                                         # visible GPU, at most one per run; 1 without GPUs or with several hosts)
     worker: Optional[int] = None        # set by the study for its workers: this process is worker k (0-based)
+    prepare_eval: bool = True           # build the evaluations' envs and compile their sweeps in a background thread
+                                        # during the last minutes of training (evaluate.PrepareEvaluation)
 
 
 register("study_schema", StudyConfig)
@@ -282,15 +300,34 @@ def run_study(c: StudyConfig, argv: Optional[list[str]] = None) -> None:
     def minutes_left() -> float:
         return math.inf if deadline is None else (deadline - time.monotonic()) / 60.0
 
+    def sets_that_fit(members: list[StudyRun], train_left_s: float) -> list[str]:
+        """The sets whose evaluation the time limit will leave time for once the training is done (what to prepare
+        while it trains): the same count as after the training, below."""
+        left, names = minutes_left() - train_left_s / 60.0, []
+        for s in members[0].sets:
+            for _ in members:
+                if left < eval_minutes(s, prepared=True):
+                    return names
+                left -= eval_minutes(s, prepared=True)
+                names += [s] if s not in names else []
+        return names
+
     todo = batches(runs, c.side_by_side)
     for i, (members, overrides) in enumerate(todo):
         print(f"[study] {i + 1}/{len(todo)}: {', '.join(str(r.dir) for r in members)}", flush=True)
+        prep = None
         if unfinished(members):
             left = minutes_left()
             if left < MIN_TRAIN_MIN:
                 print(f"[study] time limit: {left:.1f} min left; rerun the same command to go on", flush=True)
                 return
-            train(compose_run_config(overrides if deadline is None else [*overrides, f"time_limit_min={left:.2f}"]))
+            run_cfg = compose_run_config(overrides if deadline is None else [*overrides, f"time_limit_min={left:.2f}"])
+            callbacks = None
+            if c.prepare_eval and members[0].sets:
+                prep = PrepareEvaluation(lambda train_left_s, m=members: sets_that_fit(m, train_left_s),
+                                         episodes=c.episodes, log=functools.partial(print, flush=True))
+                callbacks = [*default_callbacks(to_schema(run_cfg)), prep]
+            train(run_cfg, callbacks=callbacks)
             if unfinished(members):          # the time limit ended the training: a rerun resumes it
                 print(f"[study] not finished: {', '.join(unfinished(members))}; rerun the same command to go on",
                       flush=True)
@@ -298,6 +335,8 @@ def run_study(c: StudyConfig, argv: Optional[list[str]] = None) -> None:
         # with a time limit, as many (set, run) evaluations as fit, the study file's sets in order (each over the
         # batch's seeds), counting only those not yet evaluated at the run's last checkpoint. Every process takes the
         # same decision: whether a set is done is read on the main process (the others may not see eval/) and agreed.
+        wait_for_preparation(functools.partial(print, flush=True))     # its time is spent either way
+        prepared = prep.prepared if prep is not None else []
         steps = [RunDir(r.dir).latest_step() for r in members]        # what evaluate_run evaluates
         jobs, done = [], []
         for s in members[0].sets:
@@ -308,8 +347,8 @@ def run_study(c: StudyConfig, argv: Optional[list[str]] = None) -> None:
                 distributed.print_main(f"[study] {r.dir}: {', '.join(s for s, q in done if q is r)} already "
                                        f"evaluated at checkpoint {step}", flush=True)
         fit, left = 0, minutes_left()
-        while fit < len(jobs) and left >= eval_minutes(jobs[fit][0]):
-            left -= eval_minutes(jobs[fit][0])
+        while fit < len(jobs) and left >= eval_minutes(jobs[fit][0], jobs[fit][0] in prepared):
+            left -= eval_minutes(jobs[fit][0], jobs[fit][0] in prepared)
             fit += 1
         if jobs and fit == 0:
             print(f"[study] time limit: evaluation of {', '.join(str(r.dir) for r in members)} left for the rerun",

@@ -212,3 +212,61 @@ def test_demo_trains_evaluates_and_reports(tmp_path, capsys):
     assert test["robots"] == 2 and test["set"] == "gen/test" and (d / "eval" / "train.json").is_file()
     assert "returns" in (d / "report" / "report.md").read_text().lower()
     assert "[demo] no video:" in out or (d / "videos").is_dir()
+
+
+def test_an_evaluation_prepared_while_training_builds_and_compiles_nothing_after(evaluated_runs, tmp_path,
+                                                                                   monkeypatch):
+    """prepare_evaluation (the study runs it in a background thread in training's last minutes) builds the env and
+    compiles the sweep; the evaluate_run after it waits for it, then does neither, and its results equal those of an
+    evaluation from scratch."""
+    import threading
+    from collections import OrderedDict
+    from mjx_morph.eval import evaluate as ev
+    monkeypatch.setattr(ev, "_SWEEPERS", OrderedDict())          # nothing kept from the other tests
+    d = tmp_path / "run"
+    shutil.copytree(evaluated_runs[1], d)
+    shutil.rmtree(d / "eval")
+    run = load_run(d)
+    kw = dict(episodes=2, episode_length=STEPS, trace_steps=STEPS)
+    prep, log = [], []
+    thread = threading.Thread(target=ev.prepare_evaluation, args=(run.config, run.experiment.model, run.state,
+                                                                  ["train"]), kwargs={**kw, "log": prep.append})
+    monkeypatch.setattr(ev, "_PREPARING", thread)
+    thread.start()
+    out = evaluate_run(d, ["train"], seed=0, zero_state_steps=10, log=log.append, **kw)
+    assert not thread.is_alive()
+    assert prep[0].startswith("[mjx_morph] train: building the env of 2 robots") and "env built in" in prep[1]
+    assert prep[2].startswith("[mjx_morph] train: evaluation prepared while training")
+    assert "[mjx_morph] train: env and sweep prepared while the run trained" in log
+    assert not any("building the env" in ln or "compilation" in ln for ln in log), log
+    first = json.loads((evaluated_runs[1] / "eval" / "train.json").read_text())
+    assert out["train"]["per_robot"] == first["per_robot"]
+
+
+def test_prepare_evaluation_starts_once_when_little_training_is_left(monkeypatch):
+    """The callback starts the preparation once: when iterations left x the median iteration time (the invocation's
+    compiling first iteration left out) is within lead_s and the study names sets to prepare; with the train
+    state's shapes, not its arrays (the next iteration donates them)."""
+    from types import SimpleNamespace
+    from mjx_morph.eval import evaluate as ev
+    started, asked = [], []
+    monkeypatch.setattr(ev, "prepare_evaluation",
+                        lambda cfg, model, like, names, episodes, log: started.append((cfg, model, like, names,
+                                                                                       episodes)) or names[1:])
+    monkeypatch.setattr(ev, "_PREPARING", None)
+    cb = ev.PrepareEvaluation(lambda s: asked.append(s) or (["test", "variants"] if s < 50 else []), episodes=3,
+                              lead_s=100, log=lambda line: None)
+    state = SimpleNamespace(params={"w": jnp.zeros((2, 3))}, obs_rms=jnp.ones(4, jnp.int32))
+    loop = SimpleNamespace(start=10, stop=30, member=0, own=lambda s: s, config="cfg",
+                           experiment=SimpleNamespace(model="model"))
+    for it in range(11, 31):
+        cb.on_iteration(loop, state, {"iteration": it, "wall_s": 90.0 if it == 11 else 10.0})
+        if it == 25:
+            assert ev._PREPARING is None
+    ev.wait_for_preparation()
+    assert ev._PREPARING is None and cb.prepared == ["variants"]
+    assert asked == [100.0, 90.0, 80.0, 70.0, 60.0, 50.0, 40.0]              # iterations 20-26
+    [(cfg, model, like, names, episodes)] = started
+    assert (cfg, model, names, episodes) == ("cfg", "model", ["test", "variants"], 3)
+    assert like.params["w"].shape == (2, 3) and isinstance(like.params["w"], jax.ShapeDtypeStruct)
+    assert like.obs_rms.dtype == jnp.int32

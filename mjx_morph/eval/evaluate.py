@@ -25,15 +25,16 @@ from __future__ import annotations
 import csv
 import dataclasses
 import json
+import threading
 import time
 from collections import OrderedDict
 from pathlib import Path
-from typing import Callable, Iterable, Sequence
+from typing import Callable, Iterable, NamedTuple, Sequence
 
 import jax
 import numpy as np
 
-from ..run import FAST_COMPILE, RunConfig, load_run, make_env_for, train_robots
+from ..run import FAST_COMPILE, Callback, RunConfig, load_run, make_env_for, to_dict, train_robots
 from ..unimal.morphology import Morphology
 from ..unimal.sets import load_set
 from ..unimal.variants import CHANGE_TYPES, variant_change
@@ -53,7 +54,17 @@ class EvalSet:
 #: Sweepers (a set's env and its compiled sweep) kept across evaluate_run calls of one process, keyed by what the
 #: sweep's program depends on: the seeds of a study's run share robots and model, so only the first compiles.
 _SWEEPERS: OrderedDict[str, Sweeper] = OrderedDict()
+_SWEEPERS_LOCK = threading.Lock()
 SWEEPERS_KEPT = 4
+_PREPARING: threading.Thread | None = None    # the background preparation of PrepareEvaluation, if one was started
+PREPARE_LEAD_S = 240.0      # PrepareEvaluation starts when about this much training is left (4 min: the variants'
+                            # env build and compilation take ~1.5 min on an H100 host)
+TRACE_STEPS = 500           # steps of the reward-per-timestep trace
+
+
+class PreparedShapes(NamedTuple):
+    params: object
+    obs_rms: object
 
 
 def set_tag(name: str) -> str:
@@ -130,7 +141,7 @@ def _select(res: SweepResult, mask: np.ndarray) -> SweepResult:
 def evaluate_run(run_dir: str | Path, sets: Iterable[str | EvalSet] = ("train", "test", "variants"), episodes: int = 4,
                  seed: int = 0, zero_state_steps: int = 100, zero_state_sets: Sequence[str] = ("test",),
                  step: int | None = None, max_envs: int | None = None,
-                 episode_length: int | None = None, trace_steps: int = 500,
+                 episode_length: int | None = None, trace_steps: int = TRACE_STEPS,
                  log: Callable[[str], None] = print) -> dict[str, dict]:
     """Evaluate the run's checkpoint `step` (default: newest) on each set; returns {tag: summary} and writes the
     files described in the module docstring."""
@@ -140,6 +151,7 @@ def evaluate_run(run_dir: str | Path, sets: Iterable[str | EvalSet] = ("train", 
         if value is not None and value < least:
             raise ValueError(f"{key}={value}: expected {'a positive number' if least else '0 or more'}")
     run_dir = Path(run_dir)
+    wait_for_preparation(log)
     loaded = load_run(run_dir, step)
     cfg, model, trainer, ts, step = loaded.config, loaded.experiment.model, loaded.experiment.trainer, \
         loaded.state, loaded.step
@@ -149,35 +161,17 @@ def evaluate_run(run_dir: str | Path, sets: Iterable[str | EvalSet] = ("train", 
     eval_sets = [name if isinstance(name, EvalSet) else resolve_set(cfg, name) for name in sets]
     out_dir = run_dir / "eval"
     out_dir.mkdir(exist_ok=True)
-    options = FAST_COMPILE if cfg.fast_compile else None
     env_steps = step * trainer.cfg.steps_per_iter
     summaries = {}
     meter = _Meter(log)
     for es in eval_sets:
         t0 = time.perf_counter()
         names = [m.name for m in es.robots]
-        # the same robots under another label, or another run of the same model (a seed): no new env, no compilation
-        key = repr((cfg.env, cfg.arch, cfg.model, cfg.precision, cfg.fast_compile, cfg.robots_root,
-                    cfg.allow_outside_design_space, tuple(names), sorted(env_over.items()), trace_steps))
-        sweeper = _SWEEPERS.pop(key, None)
-        compiling = sweeper is None
-        if compiling:
-            log(f"[mjx_morph] {es.tag}: building the env of {len(names)} robots ({es.name})")
-            env = make_env_for(cfg, es.robots, **env_over)
-            pairs = getattr(getattr(env, "sm", None), "self_contact", None)
-            log(f"[mjx_morph] {es.tag}: env built in {time.perf_counter() - t0:.0f} s"
-                + (f"; {pairs.line()}" if pairs is not None else ""))
-            sweeper = Sweeper(env, model, trace_steps, compiler_options=options)
-        _SWEEPERS[key] = sweeper                          # the most recently used last
-        while len(_SWEEPERS) > SWEEPERS_KEPT:
-            _SWEEPERS.popitem(last=False)
-        # all of a set's episodes in one sweep, each change type's summary read off it (the variants' 9600 episodes
-        # in 2 chunks of 4800 envs fill a GPU that one change type's 1600 would not); on a CPU at most CPU_CHUNK
-        # episodes per call, so that progress shows
+        sweeper = _sweeper_for(cfg, model, es, env_over, trace_steps, log)
         robot_of = np.repeat(np.arange(len(names), dtype=np.int32), episodes)
         episode_of = np.tile(np.arange(episodes, dtype=np.int32), len(names))
-        most = CPU_CHUNK if jax.default_backend() == "cpu" else MAX_CHUNK
-        chunk = max_envs or -(-len(robot_of) // -(-len(robot_of) // most))     # equal chunks of at most `most`
+        chunk = _chunk(len(robot_of), max_envs)
+        compiling = not sweeper.compiled(chunk)
         zero_sweep = es.groups is None and model.recurrent and zero_state_steps > 0 and es.tag in zero_state_sets
         sweeps = 1 + int(zero_sweep)
         meter.start(es.tag, len(names) * episodes * sweeps, sweeper.steps, chunk, compiling)
@@ -210,6 +204,128 @@ def evaluate_run(run_dir: str | Path, sets: Iterable[str | EvalSet] = ("train", 
 
 CPU_CHUNK = 64     # episodes per jitted sweep call on a CPU (progress every few minutes instead of none for hours)
 MAX_CHUNK = 5000   # ... and on an accelerator (bounds the memory of one call)
+
+
+def _sweeper_for(cfg: RunConfig, model, es: EvalSet, env_over: dict, trace_steps: int,
+                 log: Callable[[str], None]) -> Sweeper:
+    """The sweeper of set `es` (its env and sweep program): one kept from an earlier evaluation or preparation in
+    this process when the program would be the same (the same robots under another label, another seed of the same
+    model), else a new one, its env built here."""
+    key = repr((to_dict(cfg.env), cfg.arch, to_dict(cfg.model), cfg.precision, cfg.fast_compile, cfg.robots_root,
+                cfg.allow_outside_design_space, tuple(m.name for m in es.robots), sorted(env_over.items()),
+                trace_steps))
+    with _SWEEPERS_LOCK:
+        sweeper = _SWEEPERS.pop(key, None)
+    if sweeper is None:
+        t0 = time.perf_counter()
+        log(f"[mjx_morph] {es.tag}: building the env of {len(es.robots)} robots ({es.name})")
+        env = make_env_for(cfg, es.robots, **env_over)
+        pairs = getattr(getattr(env, "sm", None), "self_contact", None)
+        log(f"[mjx_morph] {es.tag}: env built in {time.perf_counter() - t0:.0f} s"
+            + (f"; {pairs.line()}" if pairs is not None else ""))
+        sweeper = Sweeper(env, model, trace_steps, compiler_options=FAST_COMPILE if cfg.fast_compile else None)
+    elif sweeper.prepared:
+        log(f"[mjx_morph] {es.tag}: env and sweep prepared while the run trained")
+        sweeper.prepared = False
+    with _SWEEPERS_LOCK:
+        _SWEEPERS[key] = sweeper                          # the most recently used last
+        while len(_SWEEPERS) > SWEEPERS_KEPT:
+            _SWEEPERS.popitem(last=False)
+    return sweeper
+
+
+def _chunk(episodes: int, max_envs: int | None) -> int:
+    """Episodes per jitted sweep call. All of a set's episodes in one sweep, each change type's summary read off it
+    (the variants' 9600 episodes in 2 chunks of 4800 envs fill a GPU that one change type's 1600 would not); on a CPU
+    at most CPU_CHUNK episodes per call, so that progress shows."""
+    most = CPU_CHUNK if jax.default_backend() == "cpu" else MAX_CHUNK
+    return max_envs or -(-episodes // -(-episodes // most))     # equal chunks of at most `most`
+
+
+def prepare_evaluation(cfg: RunConfig, model, like, sets: Sequence[str], episodes: int = 4,
+                       episode_length: int | None = None, trace_steps: int = TRACE_STEPS,
+                       log: Callable[[str], None] = print) -> list[str]:
+    """Build the envs of `sets` and compile their sweeps ahead of an `evaluate_run` with the same `episodes`,
+    `episode_length` and `trace_steps` (and no `max_envs`), for a train state shaped like `like` (`.params` and
+    `.obs_rms`: arrays or jax.ShapeDtypeStruct). Meant for a background thread while the run trains
+    (`PrepareEvaluation`); the sweepers are kept for the evaluate_run of this process, which waits for the
+    preparation to end. Errors are logged, never raised: evaluate_run then does the work itself. Returns the sets
+    prepared."""
+    done = []
+    for name in sets:
+        try:
+            t0 = time.perf_counter()
+            es = resolve_set(cfg, name)
+            env_over = {"episode_length": int(episode_length)} if episode_length else {}
+            sweeper = _sweeper_for(cfg, model, es, env_over, trace_steps, log)
+            chunk = _chunk(len(es.robots) * episodes, None)
+            sweeper.precompile(like.params, like.obs_rms, chunk)
+            sweeper.prepared = True
+            done.append(name)
+            log(f"[mjx_morph] {es.tag}: evaluation prepared while training ({time.perf_counter() - t0:.0f} s)")
+        except Exception as e:             # noqa: BLE001 - the training goes on; evaluate_run redoes this set
+            log(f"[mjx_morph] {name}: preparing the evaluation failed ({type(e).__name__}: {e}); it is built when "
+                "the evaluation starts")
+    return done
+
+
+def wait_for_preparation(log: Callable[[str], None] = print) -> None:
+    """Wait until the preparation that a PrepareEvaluation started (if any) has ended."""
+    global _PREPARING
+    thread, _PREPARING = _PREPARING, None
+    if thread is not None and thread.is_alive():
+        t0 = time.perf_counter()
+        log("[mjx_morph] waiting for the evaluation being prepared...")
+        thread.join()
+        log(f"[mjx_morph] ... ready after {time.perf_counter() - t0:.0f} s")
+
+
+class PrepareEvaluation(Callback):
+    """Prepares the evaluation (`prepare_evaluation`) in a background thread once the run's training is estimated
+    to end within `lead_s` seconds (iterations left x the median of the last iterations' wall time), so that the
+    evaluation after training starts at once: the env build and compilation (on an H100 host ~1.5 minutes of the
+    variants' ~5, most of test70's ~1.25) run on the host's CPU while the GPU trains. `sets(seconds)` names the sets
+    to prepare given the seconds of training estimated left (a study: those its time limit will let it evaluate);
+    nothing is prepared while it names none. One process only (evaluation runs on one). After
+    `wait_for_preparation`, `prepared` names the sets prepared."""
+
+    def __init__(self, sets: Callable[[float], Sequence[str]], episodes: int = 4, lead_s: float = PREPARE_LEAD_S,
+                 log: Callable[[str], None] = print):
+        self.sets, self.episodes, self.lead_s, self.log = sets, episodes, lead_s, log
+        self.walls: list[float] = []
+        self.started = False
+        self.prepared: list[str] = []        # the sets prepared, once the preparation has ended
+
+    def _prepare(self, *args, **kwargs) -> None:
+        self.prepared = prepare_evaluation(*args, **kwargs)
+
+    def on_iteration(self, loop, state, row):
+        global _PREPARING
+        it = int(row["iteration"])
+        if self.started or loop.member != 0 or jax.process_count() > 1:
+            return
+        if it > loop.start + 1:                  # an invocation's first iteration compiles
+            self.walls.append(float(row["wall_s"]))
+        if len(self.walls) < 3:
+            return
+        left_s = (loop.stop - it) * float(np.median(self.walls[-10:]))
+        if left_s > self.lead_s:
+            return
+        names = list(self.sets(left_s))
+        if not names:
+            return
+        own = loop.own(state)
+        # shapes and dtypes alone: the next iteration donates these arrays, and their placement (several devices
+        # while training) is not the evaluation's (one)
+        like = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, weak_type=x.weak_type),
+                            jax.eval_shape(lambda p, o: PreparedShapes(p, o), own.params, own.obs_rms))
+        self.started = True
+        self.log(f"[mjx_morph] preparing the evaluation of {', '.join(names)} while training (about "
+                 f"{left_s:.0f} s of training left)")
+        _PREPARING = threading.Thread(target=self._prepare, name="prepare-evaluation", daemon=True,
+                                      args=(loop.config, loop.experiment.model, like, names, self.episodes),
+                                      kwargs=dict(log=self.log))
+        _PREPARING.start()
 
 
 class _Meter:

@@ -22,6 +22,7 @@ Large sets run in equal chunks of at most `max_envs` episodes, so one compiled p
 from __future__ import annotations
 
 import time
+import warnings
 from typing import NamedTuple
 
 import jax
@@ -67,6 +68,34 @@ class Sweeper:
         self.steps = int(env.config.episode_length)
         self.trace_steps = min(int(trace_steps), self.steps)
         self._run = jax.jit(self._sweep, compiler_options=compiler_options)
+        self._compiled: dict[int, jax.stages.Compiled] = {}    # chunk -> program compiled ahead (`precompile`)
+        self._ran: set[int] = set()                             # chunk sizes called (compiled by the jit)
+        self.prepared = False       # set by whoever prepared it ahead of use (evaluate.prepare_evaluation)
+
+    def precompile(self, params, obs_rms, chunk: int) -> None:
+        """Compile the sweep of `chunk` episodes now, for parameters and normalisers shaped like `params` and
+        `obs_rms` (arrays or jax.ShapeDtypeStruct), so that the first call of that chunk size does not compile (it may
+        run in another thread than the calls: the env build and compilation then overlap other work)."""
+        ids = jax.ShapeDtypeStruct((int(chunk),), jnp.int32)
+        keys = jax.eval_shape(lambda r, e: episode_keys(0, self.env, r, e), ids, ids)
+        self._compiled[int(chunk)] = self._run.lower(params, obs_rms, ids, keys,
+                                                     jax.ShapeDtypeStruct((), jnp.int32)).compile()
+
+    def compiled(self, chunk: int) -> bool:
+        """Whether the sweep of `chunk` episodes is compiled: ahead (`precompile`) or by an earlier call."""
+        return int(chunk) in self._compiled or int(chunk) in self._ran
+
+    def _call(self, chunk: int, *args):
+        program = self._compiled.get(chunk)
+        if program is not None:
+            try:
+                return program(*args)
+            except (TypeError, ValueError) as e:     # arguments unlike those it was compiled for: compile anew
+                del self._compiled[chunk]
+                warnings.warn(f"the sweep compiled ahead does not take these arguments ({e}); compiling it again",
+                              stacklevel=3)
+        self._ran.add(chunk)
+        return self._run(*args)
 
     def _sweep(self, params, obs_rms, robot_ids, keys, zero_state_steps):
         env, model = self.env, self.model
@@ -110,7 +139,7 @@ class Sweeper:
             r, e = jnp.asarray(r_all[i * chunk:(i + 1) * chunk]), jnp.asarray(e_all[i * chunk:(i + 1) * chunk])
             t0 = time.perf_counter()
             keys = episode_keys(seed, self.env, r, e)
-            ep, alive, rew = self._run(params, obs_rms, r, keys, jnp.int32(zero_state_steps))
+            ep, alive, rew = self._call(chunk, params, obs_rms, r, keys, jnp.int32(zero_state_steps))
             parts.append(jax.device_get((ep, alive, rew)))
             if progress is not None:
                 progress(i, num_chunks, chunk, self.steps, time.perf_counter() - t0)
