@@ -35,3 +35,36 @@ def test_the_time_limit_leaves_room_to_stop_and_pack(tmp_path):
     assert r.returncode == 2 and "DEVICE_JOB_LIMIT_S=9m: expected whole seconds" in r.stderr
     r = job("name", "true", cwd=tmp_path, out=tmp_path, DEVICE_JOB_LIMIT_S="500")
     assert "too little" not in r.stderr and "the wheels did not install" in r.stderr
+
+
+def test_xla_cache_travels_oldest_programs_first_within_its_size(tmp_path):
+    """tools/xla_cache.py: pack takes the cache's files oldest first while they fit max MiB (a lease compiles its
+    training programs first), unpack puts them back byte for byte, and the CLI says what it did."""
+    import os
+    import sys
+    sys.path.insert(0, str(SCRIPT.parent))
+    try:
+        import xla_cache
+    finally:
+        sys.path.pop(0)
+    cache = tmp_path / "xla"
+    (cache / "sub").mkdir(parents=True)
+    sizes = {"train-step": 600_000, "init": 300_000, "sub/variants-sweep": 500_000, "test-sweep": 100_000}
+    for age, (name, size) in enumerate(sizes.items()):
+        p = cache / name
+        p.write_bytes(os.urandom(size))
+        os.utime(p, (1_000_000 + age, 1_000_000 + age))        # in this order, oldest first
+    packed, count, total = xla_cache.pack(cache, tmp_path / "out" / "xla.tar.gz", max_mb=1_000_000 / 2 ** 20)
+    assert (packed, count, total) == (2, 4, sum(sizes.values()))      # 600 k + 300 k fit 1 M; the next does not
+    back = tmp_path / "back"
+    assert xla_cache.unpack(tmp_path / "out" / "xla.tar.gz", back) == 2
+    assert {p.name for p in back.rglob("*") if p.is_file()} == {"train-step", "init"}
+    assert (back / "train-step").read_bytes() == (cache / "train-step").read_bytes()
+    r = subprocess.run([sys.executable, str(SCRIPT.parent / "xla_cache.py"), "pack", str(cache),
+                        str(tmp_path / "all.tar.gz")], capture_output=True, text=True)
+    assert r.returncode == 0 and "4 of 4 compiled programs (1.4 MiB in the cache)" in r.stdout
+    r = subprocess.run([sys.executable, str(SCRIPT.parent / "xla_cache.py"), "pack", str(tmp_path / "none"),
+                        str(tmp_path / "x.tar.gz")], capture_output=True, text=True)
+    assert r.returncode == 0 and "no compilation cache here" in r.stdout and not (tmp_path / "x.tar.gz").exists()
+    r = subprocess.run([sys.executable, str(SCRIPT.parent / "xla_cache.py"), "copy"], capture_output=True, text=True)
+    assert r.returncode == 2 and "usage:" in r.stderr

@@ -12,7 +12,9 @@
 #   installs the wheels, points the robots at .gpu/unimals_100, runs the command (XLA's W/I log lines dropped) with
 #   its output in $OUT/<name>.log, then packs the small artefacts of every run under runs/ (config, metrics.csv,
 #   eval/*.json; no checkpoints) into $OUT/<name>-runs.tar.gz: `tar xzf <it> -C results/` unpacks a study's runs
-#   here as results/<study>/<run>/.
+#   here as results/<study>/<run>/. With DEVICE_JOB_SAVE_XLA=1 it also packs JAX's compilation cache, oldest programs
+#   first, into $OUT/xla-cache.tar.gz (at most 15 MiB); copied to .gpu/ here, a fresh machine's first call starts from
+#   it (tools/xla_cache.py).
 # Example (three calls back to back: a machine left idle 30 s goes back, with runs/ and its checkpoints):
 #   bash tools/device_job.sh fp32 python -m experiments.study ab_precision 'only=[fp32]' 'archs=[modumorph]' \
 #     'seeds=[0,1]' time_limit_min=8.7 -- progress=false
@@ -23,6 +25,9 @@ set -o pipefail
 if [ "$1" = prepare ]; then
   [ -d ../shared ] || { echo "../shared is missing: clone the project beside it" >&2; exit 2; }
   ls .whl/*.whl >/dev/null 2>&1 || ../shared/tools/gpu-wheels.sh || exit 1
+  # mujoco-studio is MuJoCo's viewer (12.8 MB of the 64 MiB a call carries): neither training nor evaluation imports
+  # it (`mujoco` and `mujoco.mjx` import without it), so it stays here
+  rm -f .whl/mujoco_studio-*.whl
   [ -d .gpu/unimals_100 ] || { mkdir -p .gpu && cp -r ../shared/unimals_100 .gpu/; } || exit 1
   py=python3; [ -x .venv/bin/python ] && py=.venv/bin/python
   rm -rf .gpu/pairs      # the searches of an earlier version of selfcontact.py are never read again: not carried
@@ -62,6 +67,12 @@ python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upg
   || { echo "the wheels did not install: carry .whl (bash tools/device_job.sh prepare)" >&2; exit 1; }
 export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1
 [ -d .gpu/unimals_100 ] && export MJX_MORPH_UNIMALS=$PWD/.gpu/unimals_100
+# JAX's compilation cache: a fresh machine starts from the programs an earlier lease brought back (DEVICE_JOB_SAVE_XLA=1
+# packs them into $OUT/xla-cache.tar.gz; copy it to .gpu/ here), which serve where the GPU model and code are the same
+export MJX_MORPH_XLA_CACHE=${MJX_MORPH_XLA_CACHE:-$HOME/.cache/mjx_morph/xla}
+if [ $continuing = 0 ] && [ -f .gpu/xla-cache.tar.gz ]; then
+  python3 tools/xla_cache.py unpack .gpu/xla-cache.tar.gz "$MJX_MORPH_XLA_CACHE"
+fi
 if [ -d .gpu/pairs ]; then      # the searches `prepare` made (read only if selfcontact.py has not changed since)
   export MJX_MORPH_PAIR_CACHE=$PWD/.gpu/pairs
   echo "[device_job] $(ls .gpu/pairs | wc -l) self-collision pair searches kept in .gpu/pairs"
@@ -75,5 +86,6 @@ rc=${PIPESTATUS[0]}
 [ $rc -eq 124 ] && echo "[device_job] $name: interrupted after $limit s of the call (DEVICE_JOB_LIMIT_S)"
 dirs=$(ls -d runs/studies/* runs/* 2>/dev/null | grep -vx runs/studies | paste -sd, -)   # a study's runs: <study>/<run>
 [ -n "$dirs" ] && python3 -m experiments.collect "runs=[$dirs]" out="$OUT/$name-runs.tar.gz" 2>&1 | tail -1
+[ "${DEVICE_JOB_SAVE_XLA:-0}" = 1 ] && python3 tools/xla_cache.py pack "$MJX_MORPH_XLA_CACHE" "$OUT/xla-cache.tar.gz"
 echo "[device_job] $name: exit status $rc"
 exit $rc

@@ -1,0 +1,68 @@
+"""Carry JAX's persistent compilation cache from one lent GPU machine to the next (tools/device_job.sh).
+
+    python3 tools/xla_cache.py pack <cache dir> <archive.tar.gz> [max MiB]    # oldest programs first, up to max MiB
+    python3 tools/xla_cache.py unpack <archive.tar.gz> <cache dir>
+
+A fresh machine compiles the train step for ~100-150 s in a lease's first call; the programs compiled in an earlier
+lease serve it when they travel (`.gpu/xla-cache.tar.gz`, carried). JAX reads an entry only when its key matches: the
+same program (the training code unchanged), JAX version, compiler options and GPU model; other entries are ignored.
+The oldest entries go first, since a lease compiles its training programs before its evaluations. Plain Python (no
+JAX): it runs before the wheels are installed and after the command ended.
+"""
+from __future__ import annotations
+
+import sys
+import tarfile
+from pathlib import Path
+
+MAX_MB = 15.0       # what one file from $OUT may be (16 MiB), less a margin
+
+
+def pack(cache: Path, archive: Path, max_mb: float = MAX_MB) -> tuple[int, int, int]:
+    """The cache's files, oldest first, into `archive` while their sizes add up to at most `max_mb` MiB (the entries
+    are compressed already: gzip gains little); returns (files packed, files in the cache, bytes of the cache)."""
+    files = sorted((p for p in cache.rglob("*") if p.is_file()), key=lambda p: (p.stat().st_mtime, str(p)))
+    total, limit, size, keep = sum(p.stat().st_size for p in files), int(max_mb * 2 ** 20), 0, []
+    for p in files:
+        if size + p.stat().st_size > limit:
+            break
+        size += p.stat().st_size
+        keep.append(p)
+    archive.parent.mkdir(parents=True, exist_ok=True)
+    with tarfile.open(archive, "w:gz") as tar:
+        for p in keep:
+            tar.add(p, arcname=str(p.relative_to(cache)))
+    return len(keep), len(files), total
+
+
+def unpack(archive: Path, cache: Path) -> int:
+    """Extract `archive` into `cache` (plain files only, no paths outside it); returns the files written."""
+    cache.mkdir(parents=True, exist_ok=True)
+    with tarfile.open(archive, "r:gz") as tar:
+        members = [m for m in tar.getmembers() if m.isfile()]
+        tar.extractall(cache, members=members, filter="data")
+    return len(members)
+
+
+def main(argv: list[str]) -> int:
+    if len(argv) >= 3 and argv[0] == "pack":
+        cache, archive = Path(argv[1]), Path(argv[2])
+        if not cache.is_dir():
+            print(f"[xla_cache] {cache}: no compilation cache here; nothing packed")
+            return 0
+        packed, count, total = pack(cache, archive, float(argv[3]) if len(argv) > 3 else MAX_MB)
+        print(f"[xla_cache] {packed} of {count} compiled programs ({total / 2 ** 20:.1f} MiB in the cache) -> "
+              f"{archive} ({archive.stat().st_size / 2 ** 20:.1f} MiB)")
+        return 0
+    if len(argv) == 3 and argv[0] == "unpack":
+        n = unpack(Path(argv[1]), Path(argv[2]))
+        print(f"[xla_cache] {n} compiled programs from {argv[1]} in {argv[2]} (used only where the GPU model, JAX "
+              "and the program are the same)")
+        return 0
+    print("usage: python3 tools/xla_cache.py pack <cache dir> <archive.tar.gz> [max MiB] | "
+          "unpack <archive.tar.gz> <cache dir>", file=sys.stderr)
+    return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))
