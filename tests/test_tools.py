@@ -39,7 +39,8 @@ def test_the_time_limit_leaves_room_to_stop_and_pack(tmp_path):
 
 def test_xla_cache_travels_oldest_programs_first_within_its_size(tmp_path):
     """tools/xla_cache.py: pack takes the cache's files oldest first while they fit max MiB (a lease compiles its
-    training programs first), unpack puts them back byte for byte, and the CLI says what it did."""
+    training programs first; one too large is left out, smaller later ones still go), unpack puts them back byte for
+    byte, and the CLI says what it did."""
     import os
     import sys
     sys.path.insert(0, str(SCRIPT.parent))
@@ -55,10 +56,10 @@ def test_xla_cache_travels_oldest_programs_first_within_its_size(tmp_path):
         p.write_bytes(os.urandom(size))
         os.utime(p, (1_000_000 + age, 1_000_000 + age))        # in this order, oldest first
     packed, count, total = xla_cache.pack(cache, tmp_path / "out" / "xla.tar.gz", max_mb=1_000_000 / 2 ** 20)
-    assert (packed, count, total) == (2, 4, sum(sizes.values()))      # 600 k + 300 k fit 1 M; the next does not
+    assert (packed, count, total) == (3, 4, sum(sizes.values()))      # 600 k + 300 k + 100 k: 500 k did not fit
     back = tmp_path / "back"
-    assert xla_cache.unpack(tmp_path / "out" / "xla.tar.gz", back) == 2
-    assert {p.name for p in back.rglob("*") if p.is_file()} == {"train-step", "init"}
+    assert xla_cache.unpack(tmp_path / "out" / "xla.tar.gz", back) == 3
+    assert {p.name for p in back.rglob("*") if p.is_file()} == {"train-step", "init", "test-sweep"}
     assert (back / "train-step").read_bytes() == (cache / "train-step").read_bytes()
     r = subprocess.run([sys.executable, str(SCRIPT.parent / "xla_cache.py"), "pack", str(cache),
                         str(tmp_path / "all.tar.gz")], capture_output=True, text=True)

@@ -19,13 +19,14 @@ MAX_MB = 15.0       # what one file from $OUT may be (16 MiB), less a margin
 
 
 def pack(cache: Path, archive: Path, max_mb: float = MAX_MB) -> tuple[int, int, int]:
-    """The cache's files, oldest first, into `archive` while their sizes add up to at most `max_mb` MiB (the entries
-    are compressed already: gzip gains little); returns (files packed, files in the cache, bytes of the cache)."""
+    """The cache's files, oldest first, into `archive` while their sizes add up to at most `max_mb` MiB (a file that
+    would cross it is left out, and smaller later ones still go; the entries are compressed already, gzip gains
+    little); returns (files packed, files in the cache, bytes of the cache)."""
     files = sorted((p for p in cache.rglob("*") if p.is_file()), key=lambda p: (p.stat().st_mtime, str(p)))
     total, limit, size, keep = sum(p.stat().st_size for p in files), int(max_mb * 2 ** 20), 0, []
     for p in files:
         if size + p.stat().st_size > limit:
-            break
+            continue
         size += p.stat().st_size
         keep.append(p)
     archive.parent.mkdir(parents=True, exist_ok=True)
