@@ -243,21 +243,22 @@ def test_study_prepares_the_evaluations_its_time_limit_will_run(capsys, monkeypa
     monkeypatch.setattr(study, "train", lambda cfg, callbacks=None: given.append(callbacks))
     monkeypatch.setattr(study, "use_compile_cache", lambda path: None)
     monkeypatch.setattr(study, "time", SimpleNamespace(monotonic=lambda: 0.0))   # minutes left = the limit
-    args = ["paper", "archs=[rmomo]", "seeds=[0]", "evaluate=[variants,test]", f"out={tmp_path}", "time_limit_min=10",
+    args = ["paper", "archs=[rmomo]", "seeds=[0]", "evaluate=[val,test]", f"out={tmp_path}", "time_limit_min=10",
             "--", "stop_at=245"]
     assert study.main(args) == 0 and "rerun the same command to go on" in capsys.readouterr().out
     [callbacks] = given
     assert isinstance(callbacks[0], MetricsLog) and isinstance(callbacks[-1], PrepareEvaluation)
-    variants, test = study.eval_minutes("variants", prepared=True), study.eval_minutes("test", prepared=True)
-    assert variants < study.eval_minutes("variants") and test <= study.eval_minutes("test")
+    val, test = study.eval_minutes("val", prepared=True), study.eval_minutes("test", prepared=True)
+    assert val < study.eval_minutes("val") and test < study.eval_minutes("test")
+    assert study.eval_minutes("variants", prepared=True) < study.eval_minutes("variants")
     sets = callbacks[-1].sets
-    assert sets(60.0 * (10 - variants - test)) == ["variants", "test"]
-    assert sets(60.0 * (10 - variants - 0.5 * test)) == ["variants"]
-    assert sets(60.0 * (10 - 0.9 * variants)) == []
+    assert sets(60.0 * (10 - val - test)) == ["val", "test"]
+    assert sets(60.0 * (10 - val - 0.5 * test)) == ["val"]
+    assert sets(60.0 * (10 - 0.9 * val)) == []
     assert study.main([*args[:-2], "prepare_eval=false", *args[-2:]]) == 0
     assert given[-1] is None
-    # after the training, the sets prepared cost their prepared time: with 5.5 minutes left both fit, without
-    # preparation the variants alone
+    # after the training, the sets prepared cost their prepared time: with half a minute more than that left both
+    # fit, without preparation val alone
     trained, calls = set(), []
 
     class Trained(Untrained):
@@ -270,17 +271,17 @@ def test_study_prepares_the_evaluations_its_time_limit_will_run(capsys, monkeypa
     def train(cfg, callbacks=None):
         trained.add(tmp_path / "paper" / "ft-rmomo-main-s0")
         if callbacks:
-            callbacks[-1].prepared = ["variants", "test"]
+            callbacks[-1].prepared = ["val", "test"]
     monkeypatch.setattr(study, "RunDir", Trained)
     monkeypatch.setattr(study, "train", train)
     monkeypatch.setattr(study, "evaluated", lambda d, s, step, episodes: False)
     monkeypatch.setattr(study, "evaluate_run", lambda d, sets, episodes: calls.append(list(sets)))
-    limit = study.eval_minutes("variants", True) + study.eval_minutes("test", True) + 0.5
-    assert limit < study.eval_minutes("variants") + study.eval_minutes("test")
+    limit = study.eval_minutes("val", True) + study.eval_minutes("test", True) + 0.5
+    assert limit < study.eval_minutes("val") + study.eval_minutes("test")
     short = [*args[:5], f"time_limit_min={limit}", *args[-2:]]
-    assert study.main(short) == 0 and calls == [["variants", "test"]]
+    assert study.main(short) == 0 and calls == [["val", "test"]]
     trained.clear()
-    assert study.main([*short[:-2], "prepare_eval=false", *short[-2:]]) == 0 and calls[-1] == ["variants"]
+    assert study.main([*short[:-2], "prepare_eval=false", *short[-2:]]) == 0 and calls[-1] == ["val"]
 
 
 def test_study_only_selects_runs_and_names_the_known_ones(capsys, unimals):
