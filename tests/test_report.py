@@ -516,3 +516,26 @@ def test_returns_table_counts_the_seeds_of_each_set(tmp_path):
     line = next(ln for ln in (tmp_path / "out" / "report.md").read_text().splitlines() if ln.startswith("| ft | rmomo"))
     test_cell, variants_cell = line.split(" | ")[3:5]
     assert test_cell.endswith("[1 of 2 seeds]") and "seeds" not in variants_cell
+
+
+def test_training_claim_reads_the_learning_curves_of_runs_that_reached_the_end(tmp_path):
+    """Set "training": each seed's mean episode return over its last ~5% of iterations (metrics.csv), only runs at
+    the furthest env steps of both models (a ModuMorph run cut short drops out), the verdict of claim_test."""
+    def final(d):                     # the last 2 of 40 iterations (ceil 5%), read from the file here
+        rows = _csv(d / "metrics.csv")
+        return np.mean([float(r["episode_return"]) for r in rows[-max(1, -(-len(rows) * 5 // 100)):]])
+    runs = {(a, s): make_run(tmp_path / "runs", f"ft-{a}-s{s}", arch=a, seed=s, evals=())[0]
+            for a in ("rmomo", "modumorph") for s in (0, 1)}
+    make_run(tmp_path / "runs", "ft-modumorph-s2", arch="modumorph", seed=2, evals=(), iters=30)   # cut short
+    build_report([tmp_path / "runs"], tmp_path / "out")
+    r = _claim_rows(tmp_path / "out")[("ft", "rmomo", "training")]
+    a = [final(runs[("rmomo", s)]) for s in (0, 1)]
+    b = [final(runs[("modumorph", s)]) for s in (0, 1)]
+    assert (r["model_seeds"], r["baseline_seeds"]) == ("2", "2")
+    assert r["claim"] == "R-MoMo trains at least as well as ModuMorph"
+    assert float(r["model_mean"]) == pytest.approx(np.mean(a))
+    assert float(r["baseline_mean"]) == pytest.approx(np.mean(b))
+    assert r["verdict"] == _verdict_ref(a, b, "level")[0]
+    text = (tmp_path / "out" / "report.md").read_text()
+    assert "| ft | R-MoMo trains at least as well as ModuMorph | training | 2/2 |" in text
+    assert "R-MeMo trains at least as well as MetaMorph (training: rmemo 0, metamorph 0 seeds)" in text

@@ -53,8 +53,8 @@ from .document import Document, fmt, fmt_steps, pm, write_csv
 from .params import param_count
 from .runs import CONTEXT_GROUPS, Run, classify, find_run_dirs, name_variants, read_run
 from .stats import (CLAIM_MARGIN, TASK_RANGES, Stat, change_stats, ci95, claim_test, mean_curve, normalised_or_nan,
-                    repeated_seeds, robot_difference, seed_average, seed_count, seed_set_means, set_stat,
-                    stat_of)
+                    repeated_seeds, robot_difference, seed_average, seed_count, seed_set_means, seed_train_means,
+                    set_stat, stat_of)
 
 SETS = ("train", "test", "val", "variants")
 TASK_ORDER = tuple(TASK_RANGES)
@@ -82,6 +82,12 @@ CLAIMS: tuple[Claim, ...] = (
     Claim("rmemo", "metamorph", "variants", "better", "R-MeMo beats MetaMorph zero-shot on dynamics/kinematics "
                                                       "variants"),
 )
+
+#: The training claims read off the learning curves too (set "training"): each seed's final training return, the mean
+#: episode return of its last ~5% of iterations (metrics.csv), for the runs of both models that reached the furthest
+#: env steps any of them reached (a run cut short is at another point of the schedule).
+TRAINING = "training"
+TRAINING_CLAIMS: tuple[Claim, ...] = tuple(c for c in CLAIMS if c.set == "train")
 
 
 @dataclass
@@ -372,15 +378,22 @@ def _claims(doc: Document, ctx: ReportContext) -> None:
     claim_archs = {a for c in CLAIMS for a in (c.model, c.baseline)}
     for t in ctx.tasks:
         main, untested = ctx.main[t], []
-        for c in CLAIMS:
-            a, b = seed_set_means(main.get(c.model, []), c.set), seed_set_means(main.get(c.baseline, []), c.set)
+        sides = [(c, c.set, seed_set_means(main.get(c.model, []), c.set),
+                  seed_set_means(main.get(c.baseline, []), c.set)) for c in CLAIMS]
+        for c in TRAINING_CLAIMS:
+            both = [r for a in (c.model, c.baseline) for r in main.get(a, []) if math.isfinite(r.final_train_return())]
+            steps = max((r.final_steps for r in both), default=math.nan)
+            sides.append((c, TRAINING, seed_train_means(main.get(c.model, []), steps),
+                          seed_train_means(main.get(c.baseline, []), steps)))
+        for c, set_name, a, b in sides:
             if not a or not b:
-                untested.append(f"{c.text} ({c.set}: {c.model} {len(a)}, {c.baseline} {len(b)} seeds)")
+                untested.append(f"{c.text} ({set_name}: {c.model} {len(a)}, {c.baseline} {len(b)} seeds)")
                 continue
             r = claim_test(a, b, c.kind)
-            rows.append([t, c.model, c.baseline, c.text, c.kind, c.set, r.model_seeds, r.baseline_seeds, r.model_mean,
-                         r.baseline_mean, r.difference, r.ci_low, r.ci_high, r.margin, r.relative, r.verdict])
-            md.append([t, c.text, c.set, f"{r.model_seeds}/{r.baseline_seeds}", fmt(r.model_mean),
+            rows.append([t, c.model, c.baseline, c.text, c.kind, set_name, r.model_seeds, r.baseline_seeds,
+                         r.model_mean, r.baseline_mean, r.difference, r.ci_low, r.ci_high, r.margin, r.relative,
+                         r.verdict])
+            md.append([t, c.text, set_name, f"{r.model_seeds}/{r.baseline_seeds}", fmt(r.model_mean),
                        fmt(r.baseline_mean), _interval(r.difference, r.ci_low, r.ci_high),
                        f"{r.relative:+.1f}%" if math.isfinite(r.relative) else "–", r.verdict])
         for arch in sorted(claim_archs & set(main)):
@@ -389,8 +402,8 @@ def _claims(doc: Document, ctx: ReportContext) -> None:
                                    f"seed in the claims, their mean")
         if untested:
             arms = [a for a in main if a.split(",", 1)[0] in claim_archs and a not in claim_archs]
-            doc.missing.append(f"{t}: claims untested — each needs eval/<set>.json of main runs of both "
-                               f"architectures: {'; '.join(untested)}"
+            doc.missing.append(f"{t}: claims untested — each needs eval/<set>.json (set training: metrics.csv) of "
+                               f"main runs of both architectures: {'; '.join(untested)}"
                                + (f" (A/B arms are not compared: {'; '.join(arms)})" if arms else ""))
     if rows:
         m = f"{100 * CLAIM_MARGIN:g}%"
@@ -400,10 +413,11 @@ def _claims(doc: Document, ctx: ReportContext) -> None:
                    "verdict"], rows,
                   ["task", "claim", "set", "seeds (model/baseline)", "model mean", "baseline mean",
                    "difference [95% CI]", "relative difference", "verdict"], md,
-                  note="per seed, the set's mean return over robots; difference of the means over seeds, model − "
-                       f"baseline, 95% CI from Welch's t; margin m = {m} of the baseline's mean. 'beats': "
-                       "reproduced if the CI lies above 0, not reproduced if below m; 'at least as well': "
-                       "reproduced if above −m, not reproduced if below 0; otherwise inconclusive. Main runs of the "
+                  note="per seed, the set's mean return over robots (set 'training': the mean episode return of "
+                       "the last ~5% of iterations in metrics.csv, of the runs that reached the furthest env steps); "
+                       "difference of the means over seeds, model − baseline, 95% CI from Welch's t; "
+                       f"margin m = {m} of the baseline's mean. 'beats': reproduced if the CI lies above 0, not "
+                       "reproduced if below m; 'at least as well': reproduced if above −m, not reproduced if below 0; otherwise inconclusive. Main runs of the "
                        "groups named by the architecture alone (A/B arms are not compared).")
 
 

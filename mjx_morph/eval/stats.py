@@ -162,6 +162,18 @@ def seed_set_means(runs: Sequence[Run], tag: str) -> list[float]:
     return [float(np.mean(v)) for v in by_seed.values()]
 
 
+def seed_train_means(runs: Sequence[Run], steps: float) -> list[float]:
+    """Each seed's final training return (`Run.final_train_return`: the last ~5% of iterations of metrics.csv), for
+    the runs that reached `steps` env steps (a run cut short is at another point of its schedule); runs of one seed
+    are one sample, their mean, as in `seed_set_means`."""
+    by_seed: dict = {}
+    for i, r in enumerate(runs):
+        v = r.final_train_return()
+        if r.final_steps == steps and math.isfinite(v):
+            by_seed.setdefault(("seed", r.seed) if r.seed is not None else ("run", i), []).append(v)
+    return [float(np.mean(v)) for v in by_seed.values()]
+
+
 def seed_count(runs: Sequence[Run]) -> int:
     """How many seeds `runs` have (runs of one seed count once; a run without a seed counts alone)."""
     return len({r.seed for r in runs if r.seed is not None}) + sum(r.seed is None for r in runs)
