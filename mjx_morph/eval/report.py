@@ -417,8 +417,9 @@ def _claims(doc: Document, ctx: ReportContext) -> None:
                        "the last ~5% of iterations in metrics.csv, of the runs that reached the furthest env steps); "
                        "difference of the means over seeds, model − baseline, 95% CI from Welch's t; "
                        f"margin m = {m} of the baseline's mean. 'beats': reproduced if the CI lies above 0, not "
-                       "reproduced if below m; 'at least as well': reproduced if above −m, not reproduced if below 0; otherwise inconclusive. Main runs of the "
-                       "groups named by the architecture alone (A/B arms are not compared).")
+                       "reproduced if below m; 'at least as well': reproduced if above −m, not reproduced if below "
+                       "0; otherwise inconclusive. Main runs of the groups named by the architecture alone (A/B arms "
+                       "are not compared).")
 
 
 def _mean_trace(traces: list[list]) -> np.ndarray | None:
