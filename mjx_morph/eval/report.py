@@ -26,7 +26,8 @@ grid; mean and 95% CI over the seeds covering each grid point (no band with one 
 Claims (`CLAIMS`, the paper's claims as data): per task, each model against its baseline on one eval set, on the
 main runs of the groups named exactly by the architecture (so not the arms of an A/B study, e.g. "rmomo,
 precision=bf16"), with seeds as the samples and the verdict rule of `stats.claim_test`; a claim that a side has no
-eval/<set>.json for is listed under "Missing".
+eval/<set>.json for is listed under "Missing". The training claims are also tested on the learning curves (set
+"training", `TRAINING_CLAIMS`: each seed's last ~5% of iterations in metrics.csv, runs at the furthest env steps).
 
 The report is the sections of `SECTIONS`, in order: each is a function (document, context) that adds figures
 (under its heading), tables and missing items to the `document.Document`; `build_report` reads the runs, makes the
