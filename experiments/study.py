@@ -89,6 +89,18 @@ def eval_minutes(name: str, prepared: bool = False) -> float:
     return EVAL_MINUTES.get(name, EVAL_SET_MIN)
 
 
+def evaluations_that_fit(sets: list[str], minutes: float, prepared) -> int:
+    """How many of the evaluations `sets` (one set name per (set, run), in order) fit `minutes`, each counted at
+    `eval_minutes` (its prepared time for the sets in `prepared`)."""
+    fit = 0
+    for s in sets:
+        minutes -= eval_minutes(s, s in prepared)
+        if minutes < 0:
+            break
+        fit += 1
+    return fit
+
+
 @dataclasses.dataclass
 class StudyConfig:
     name: str = MISSING                 # the study: a file of experiments/conf/study (without .yaml)
@@ -304,15 +316,10 @@ def run_study(c: StudyConfig, argv: Optional[list[str]] = None) -> None:
 
     def sets_that_fit(members: list[StudyRun], train_left_s: float) -> list[str]:
         """The sets whose evaluation the time limit will leave time for once the training is done (what to prepare
-        while it trains): the same count as after the training, below."""
-        left, names = minutes_left() - train_left_s / 60.0, []
-        for s in members[0].sets:
-            for _ in members:
-                if left < eval_minutes(s, prepared=True):
-                    return names
-                left -= eval_minutes(s, prepared=True)
-                names += [s] if s not in names else []
-        return names
+        while it trains): the count after the training, below, with every set prepared."""
+        jobs = [s for s in members[0].sets for _ in members]
+        fit = evaluations_that_fit(jobs, minutes_left() - train_left_s / 60.0, jobs)
+        return list(dict.fromkeys(jobs[:fit]))
 
     todo = batches(runs, c.side_by_side)
     for i, (members, overrides) in enumerate(todo):
@@ -348,10 +355,7 @@ def run_study(c: StudyConfig, argv: Optional[list[str]] = None) -> None:
             if any(q is r for _, q in done):
                 distributed.print_main(f"[study] {r.dir}: {', '.join(s for s, q in done if q is r)} already "
                                        f"evaluated at checkpoint {step}", flush=True)
-        fit, left = 0, minutes_left()
-        while fit < len(jobs) and left >= eval_minutes(jobs[fit][0], jobs[fit][0] in prepared):
-            left -= eval_minutes(jobs[fit][0], jobs[fit][0] in prepared)
-            fit += 1
+        fit = evaluations_that_fit([s for s, _ in jobs], minutes_left(), prepared)
         if jobs and fit == 0:
             print(f"[study] time limit: evaluation of {', '.join(str(r.dir) for r in members)} left for the rerun",
                   flush=True)

@@ -20,7 +20,7 @@ from __future__ import annotations
 import math
 from collections import defaultdict
 from dataclasses import dataclass
-from typing import Sequence
+from typing import Callable, Sequence
 
 import numpy as np
 from scipy import stats
@@ -148,28 +148,31 @@ def seed_set_means(runs: Sequence[Run], tag: str) -> list[float]:
     reads; without any, the file's mean_return), for the runs that evaluated `tag`. Runs of one seed (the same
     config run again, e.g. on another GPU model, which gives another run) are one sample, their mean: they share
     their initial parameters and episodes, so they are not independent seeds."""
-    by_seed: dict = {}
-    for i, r in enumerate(runs):
+    def mean_return(r: Run) -> float:
         if tag not in r.evals:
-            continue
+            return float("nan")
         pr = r.per_robot(tag)
         try:
-            v = float(np.mean(list(pr.values()))) if pr else float(r.evals[tag].get("mean_return"))
+            return float(np.mean(list(pr.values()))) if pr else float(r.evals[tag].get("mean_return"))
         except (TypeError, ValueError):
-            continue
-        if math.isfinite(v):
-            by_seed.setdefault(("seed", r.seed) if r.seed is not None else ("run", i), []).append(v)
-    return [float(np.mean(v)) for v in by_seed.values()]
+            return float("nan")
+    return _per_seed(runs, mean_return)
 
 
 def seed_train_means(runs: Sequence[Run], steps: float) -> list[float]:
     """Each seed's final training return (`Run.final_train_return`: the last ~5% of iterations of metrics.csv), for
     the runs that reached `steps` env steps (a run cut short is at another point of its schedule); runs of one seed
     are one sample, their mean, as in `seed_set_means`."""
+    return _per_seed(runs, lambda r: r.final_train_return() if r.final_steps == steps else float("nan"))
+
+
+def _per_seed(runs: Sequence[Run], value: Callable[[Run], float]) -> list[float]:
+    """The mean of `value` over each seed's runs (a run without a seed alone), runs whose value is not finite left
+    out."""
     by_seed: dict = {}
     for i, r in enumerate(runs):
-        v = r.final_train_return()
-        if r.final_steps == steps and math.isfinite(v):
+        v = value(r)
+        if math.isfinite(v):
             by_seed.setdefault(("seed", r.seed) if r.seed is not None else ("run", i), []).append(v)
     return [float(np.mean(v)) for v in by_seed.values()]
 

@@ -163,6 +163,11 @@ def compile_padded(robots: Sequence[Morphology], tree: SharedTree, world: WorldS
     return out
 
 
+#: robots from which `put_models` spreads over processes: below, starting them (their JAX imports) costs more than
+#: it saves
+PUT_PARALLEL_FROM = 500
+
+
 def put_models(mjm: Sequence[mujoco.MjModel]) -> list[mjx.Model]:
     """`mjx.put_model` of each compiled robot on the CPU, with numpy leaves (`_stack` stacks them). It costs ~20 ms
     a robot (JAX's dispatch per field), so from `PUT_PARALLEL_FROM` robots on it runs in one process per core."""
@@ -170,11 +175,6 @@ def put_models(mjm: Sequence[mujoco.MjModel]) -> list[mjx.Model]:
     jobs = [(mm, x64, int(mm.signature)) for mm in mjm]
     return processes.process_map(_put_model, jobs, processes.processes_for(len(jobs), PUT_PARALLEL_FROM),
                                  "MJX's put_model")
-
-
-#: robots from which `put_models` spreads over processes: below, starting them (their JAX imports) costs more than
-#: it saves
-PUT_PARALLEL_FROM = 500
 
 
 def _put_model(job: tuple[mujoco.MjModel, bool, int]) -> mjx.Model:
