@@ -13,7 +13,8 @@ Run directories: <out>/<study>/<env>-<arch>-<run>-s<seed> (default out: runs/stu
 already evaluated at the run's last checkpoint (eval/<set>.json) is not evaluated again. `only=[a,b]` takes the
 study's runs a and b alone; `time_limit_min=N` ends the invocation after about N minutes of training (the run in
 training checkpoints, runs that did not finish are not evaluated, and of a finished batch only the evaluations that
-fit, `eval_minutes` per set and run, in the study file's order of sets over the seeds; rerun to go on):
+fit, `eval_minutes` per set and run, in the study file's order of sets over the seeds, a set too long for the time
+left giving way to shorter ones after it; rerun to go on):
 
     python -m experiments.study ab_rmomo_cell only=[scale_before,scale_after] seeds=[0,1] time_limit_min=9
 
@@ -71,12 +72,11 @@ MIN_TRAIN_MIN = 1.0     # with time_limit_min: do not start (compile) a training
 #: in 154 s (31 k env steps/s), the second ~100 s (estimated: it was cut by the call's end)
 EVAL_MINUTES = {"train": 2.5, "val": 1.75, "test": 1.25, "variants": 5.0}
 EVAL_SET_MIN = 2.5      # ... and of any other set (the largest of the ~100-robot sets)
-#: ... and when its env and sweep were prepared while the run trained (PrepareEvaluation). Estimated from the sweeps'
-#: measured rates without compilation (session 21, H100s): the variants' 2 x 4.8 M env steps at 49 k/s, 196 s;
-#: test70's 2 x 280 k at 21 k/s, 27 s; the others from the sets' sizes; with ~20 s for loading the checkpoint (the
-#: first set of a run). Not yet measured as a whole. Tight on purpose: in the paper study's third call ModuMorph leaves
-#: ~4.9 minutes, and an evaluation that overruns the study's limit still has the ~30 s before device_job.sh's
-#: interrupt (what it interrupts is the last set, which a looser estimate would not have started).
+#: ... and when its env and sweep were prepared while the run trained (PrepareEvaluation). Measured (session 22, one run
+#: per H100 of 4): the variants 196-199 s, test70 27 s after them; plus loading the checkpoint for a run's first set
+#: (~20 s, estimated); the others estimated from the sets' sizes. Tight on purpose: in the paper study's third call
+#: ModuMorph leaves ~4 minutes, and an evaluation that overruns the study's limit still has the ~30 s before
+#: device_job.sh's interrupt (what it interrupts is the last set, which a looser estimate would not have started).
 EVAL_MINUTES_PREPARED = {"train": 1.0, "val": 0.75, "test": 0.75, "variants": 3.75}
 EVAL_SET_MIN_PREPARED = 1.0
 
@@ -89,15 +89,16 @@ def eval_minutes(name: str, prepared: bool = False) -> float:
     return EVAL_MINUTES.get(name, EVAL_SET_MIN)
 
 
-def evaluations_that_fit(sets: list[str], minutes: float, prepared) -> int:
-    """How many of the evaluations `sets` (one set name per (set, run), in order) fit `minutes`, each counted at
-    `eval_minutes` (its prepared time for the sets in `prepared`)."""
-    fit = 0
-    for s in sets:
-        minutes -= eval_minutes(s, s in prepared)
-        if minutes < 0:
-            break
-        fit += 1
+def evaluations_that_fit(sets: list[str], minutes: float, prepared) -> list[int]:
+    """The indices of the evaluations `sets` (one set name per (set, run), in order of priority) that fit `minutes`,
+    each counted at `eval_minutes` (its prepared time for the sets in `prepared`): each in turn is taken if it fits
+    what the ones taken before it leave, so that one too long for the time left gives way to shorter ones after it."""
+    fit = []
+    for i, s in enumerate(sets):
+        need = eval_minutes(s, s in prepared)
+        if need <= minutes:
+            fit.append(i)
+            minutes -= need
     return fit
 
 
@@ -111,6 +112,7 @@ class StudyConfig:
     episodes: int = 4                   # evaluation episodes per robot
     evaluate: Optional[List[str]] = None   # the sets to evaluate every run on, in this order (None: the study file's
                                         # `evaluate`); with a time limit the first come first, e.g. [test,variants]
+                                        # (a set that no longer fits gives way to shorter ones after it)
     dry_run: bool = False               # print the runs and stop
     side_by_side: bool = True           # train the seeds of a run in one program (experiments.run seeds=[...])
     run: List[str] = dataclasses.field(default_factory=list)   # extra experiments.run overrides (after --)
@@ -319,7 +321,7 @@ def run_study(c: StudyConfig, argv: Optional[list[str]] = None) -> None:
         while it trains): the count after the training, below, with every set prepared."""
         jobs = [s for s in members[0].sets for _ in members]
         fit = evaluations_that_fit(jobs, minutes_left() - train_left_s / 60.0, jobs)
-        return list(dict.fromkeys(jobs[:fit]))
+        return list(dict.fromkeys(jobs[i] for i in fit))
 
     todo = batches(runs, c.side_by_side)
     for i, (members, overrides) in enumerate(todo):
@@ -341,8 +343,8 @@ def run_study(c: StudyConfig, argv: Optional[list[str]] = None) -> None:
                 print(f"[study] not finished: {', '.join(unfinished(members))}; rerun the same command to go on",
                       flush=True)
                 return
-        # with a time limit, as many (set, run) evaluations as fit, the study file's sets in order (each over the
-        # batch's seeds), counting only those not yet evaluated at the run's last checkpoint. Every process takes the
+        # with a time limit, the (set, run) evaluations that fit, the study file's sets in order (each over the
+        # batch's seeds; one that does not fit gives way to shorter ones after it), counting only those not yet evaluated at the run's last checkpoint. Every process takes the
         # same decision: whether a set is done is read on the main process (the others may not see eval/) and agreed.
         wait_for_preparation(functools.partial(print, flush=True))     # its time is spent either way
         prepared = prep.prepared if prep is not None else []
@@ -356,18 +358,18 @@ def run_study(c: StudyConfig, argv: Optional[list[str]] = None) -> None:
                 distributed.print_main(f"[study] {r.dir}: {', '.join(s for s, q in done if q is r)} already "
                                        f"evaluated at checkpoint {step}", flush=True)
         fit = evaluations_that_fit([s for s, _ in jobs], minutes_left(), prepared)
-        if jobs and fit == 0:
+        if jobs and not fit:
             print(f"[study] time limit: evaluation of {', '.join(str(r.dir) for r in members)} left for the rerun",
                   flush=True)
             return
         if distributed.is_main():
             for r in members:                           # one evaluate_run (one checkpoint load) per run
-                sets = [s for s, q in jobs[:fit] if q is r]
+                sets = [jobs[i][0] for i in fit if jobs[i][1] is r]
                 if sets:
                     evaluate_run(r.dir, sets, episodes=c.episodes)
         distributed.barrier("evaluated")
-        if fit < len(jobs):
-            left = ", ".join(f"{r.dir}: {s}" for s, r in jobs[fit:])
+        if len(fit) < len(jobs):
+            left = ", ".join(f"{r.dir}: {s}" for i, (s, r) in enumerate(jobs) if i not in fit)
             print(f"[study] time limit: evaluation of {left} left for the rerun", flush=True)
             return
     print(f"[study] done; report: python -m experiments.report runs=[{Path(c.out) / c.name}] out=<dir>")

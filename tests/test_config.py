@@ -221,6 +221,14 @@ def test_study_time_limit_evaluates_what_fits(capsys, monkeypatch, tmp_path, uni
                        f"time_limit_min={limit}", "--", "stop_at=245"]) == 0
     assert calls == [("ft-rmomo-main-s0", ["variants"])]
     assert "ft-rmomo-main-s0: test left for the rerun" in capsys.readouterr().out
+    # a set too long for the time left gives way to a shorter one after it: the variants do not fit, test70 does
+    calls.clear()
+    limit = study.eval_minutes("test") + 0.1
+    assert study.eval_minutes("variants") > limit
+    assert study.main(["paper", "archs=[rmomo]", "seeds=[0]", "evaluate=[variants,test]", f"out={tmp_path}",
+                       f"time_limit_min={limit}", "--", "stop_at=245"]) == 0
+    assert calls == [("ft-rmomo-main-s0", ["test"])]
+    assert "ft-rmomo-main-s0: variants left for the rerun" in capsys.readouterr().out
 
 
 def test_study_prepares_the_evaluations_its_time_limit_will_run(capsys, monkeypatch, tmp_path, unimals):
@@ -303,7 +311,7 @@ def test_study_evaluate_overrides_the_study_files_sets(capsys, unimals):
     a set the run's robots have not is refused before anything trains."""
     from experiments import study
     assert study.main(["paper", "archs=[rmomo]", "seeds=[0]", "dry_run=true"]) == 0
-    assert "then evaluate ['train', 'val', 'test', 'variants']" in capsys.readouterr().out
+    assert "then evaluate ['test', 'variants', 'val', 'train']" in capsys.readouterr().out
     assert study.main(["paper", "archs=[rmomo]", "seeds=[0]", "evaluate=[test,variants]", "dry_run=true"]) == 0
     assert "then evaluate ['test', 'variants']" in capsys.readouterr().out
     assert study.main(["paper", "archs=[rmomo]", "seeds=[0]", "evaluate=[val]", "--", "robots=gen/train"]) == 2
@@ -363,6 +371,6 @@ def test_paper_study_runs_the_four_models_with_three_seeds(capsys, unimals):
     assert sorted((ln.split("arch=")[1].split()[0], ln.split("seed=")[1].split()[0]) for ln in lines) == \
         sorted((a, str(s)) for a in ("metamorph", "modumorph", "rmemo", "rmomo") for s in (0, 1, 2))
     assert all(ln.startswith("python -m experiments.run env=incline") and "total_steps=100000000" in ln
-               and ln.endswith("['train', 'val', 'test', 'variants']") for ln in lines)
+               and ln.endswith("['test', 'variants', 'val', 'train']") for ln in lines)
     assert study.main(["paper", "seeds=[5]", "dry_run=true"]) == 0
     assert len(capsys.readouterr().out.strip().splitlines()) == 4
