@@ -520,7 +520,8 @@ def test_returns_table_counts_the_seeds_of_each_set(tmp_path):
 
 def test_training_claim_reads_the_learning_curves_of_runs_that_reached_the_end(tmp_path):
     """Set "training": each seed's mean episode return over its last ~5% of iterations (metrics.csv), only runs at
-    the furthest env steps of both models (a ModuMorph run cut short drops out), the verdict of claim_test."""
+    the furthest env steps of both models (a ModuMorph run cut short drops out), the verdict of claim_test; set
+    "training_all": every run, up to the env steps the one cut short reached."""
     def final(d):                     # the last 2 of 40 iterations (ceil 5%), read from the file here
         rows = _csv(d / "metrics.csv")
         return np.mean([float(r["episode_return"]) for r in rows[-max(1, -(-len(rows) * 5 // 100)):]])
@@ -537,5 +538,21 @@ def test_training_claim_reads_the_learning_curves_of_runs_that_reached_the_end(t
     assert float(r["baseline_mean"]) == pytest.approx(np.mean(b))
     assert r["verdict"] == _verdict_ref(a, b, "level")[0]
     text = (tmp_path / "out" / "report.md").read_text()
-    assert "| ft | R-MoMo trains at least as well as ModuMorph | training | 2/2 |" in text
+    steps = float(_csv(runs[("rmomo", 0)] / "metrics.csv")[-1]["env_steps"])
+    assert f"| ft | R-MoMo trains at least as well as ModuMorph | training to {steps / 1e6:.1f} M steps | 2/2 |" in text
     assert "R-MeMo trains at least as well as MetaMorph (training: rmemo 0, metamorph 0 seeds)" in text
+    # set "training_all": every run, each up to the env steps the one cut short reached (its last ~5% up to there)
+    def up_to(d, steps):
+        rows = [r for r in _csv(d / "metrics.csv") if float(r["env_steps"]) <= steps]
+        return np.mean([float(r["episode_return"]) for r in rows[-max(1, -(-len(rows) * 5 // 100)):]])
+    short = tmp_path / "runs" / "ft-modumorph-s2"
+    cut = float(_csv(short / "metrics.csv")[-1]["env_steps"])
+    r = _claim_rows(tmp_path / "out")[("ft", "rmomo", "training_all")]
+    a = [up_to(runs[("rmomo", s)], cut) for s in (0, 1)]
+    b = [up_to(d, cut) for d in (runs[("modumorph", 0)], runs[("modumorph", 1)], short)]
+    assert a[0] != final(runs[("rmomo", 0)])
+    assert (r["model_seeds"], r["baseline_seeds"]) == ("2", "3")
+    assert float(r["model_mean"]) == pytest.approx(np.mean(a))
+    assert float(r["baseline_mean"]) == pytest.approx(np.mean(b))
+    assert r["verdict"] == _verdict_ref(a, b, "level")[0]
+    assert f"| training_all to {cut / 1e6:.1f} M steps | 2/3 |" in text

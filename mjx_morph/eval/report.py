@@ -27,7 +27,8 @@ Claims (`CLAIMS`, the paper's claims as data): per task, each model against its 
 main runs of the groups named exactly by the architecture (so not the arms of an A/B study, e.g. "rmomo,
 precision=bf16"), with seeds as the samples and the verdict rule of `stats.claim_test`; a claim that a side has no
 eval/<set>.json for is listed under "Missing". The training claims are also tested on the learning curves (set
-"training", `TRAINING_CLAIMS`: each seed's last ~5% of iterations in metrics.csv, runs at the furthest env steps).
+"training", `TRAINING_CLAIMS`: each seed's last ~5% of iterations in metrics.csv, runs at the furthest env steps;
+where some runs stopped short, also set "training_all": every run, at the env steps all of them reached).
 
 The report is the sections of `SECTIONS`, in order: each is a function (document, context) that adds figures
 (under its heading), tables and missing items to the `document.Document`; `build_report` reads the runs, makes the
@@ -88,6 +89,9 @@ CLAIMS: tuple[Claim, ...] = (
 #: episode return of its last ~5% of iterations (metrics.csv), for the runs of both models that reached the furthest
 #: env steps any of them reached (a run cut short is at another point of the schedule).
 TRAINING = "training"
+#: ... and, where some runs stopped short of the others (a lost call), once more at the env steps that every run of
+#: both models reached (set "training_all"): each run's last ~5% of the iterations up to there, so no seed drops out.
+TRAINING_ALL = "training_all"
 TRAINING_CLAIMS: tuple[Claim, ...] = tuple(c for c in CLAIMS if c.set == "train")
 
 
@@ -378,14 +382,18 @@ def _claims(doc: Document, ctx: ReportContext) -> None:
     rows, md = [], []
     claim_archs = {a for c in CLAIMS for a in (c.model, c.baseline)}
     for t in ctx.tasks:
-        main, untested = ctx.main[t], []
+        main, untested, shown = ctx.main[t], [], {}
         sides = [(c, c.set, seed_set_means(main.get(c.model, []), c.set),
                   seed_set_means(main.get(c.baseline, []), c.set)) for c in CLAIMS]
         for c in TRAINING_CLAIMS:
             both = [r for a in (c.model, c.baseline) for r in main.get(a, []) if math.isfinite(r.final_train_return())]
-            steps = max((r.final_steps for r in both), default=math.nan)
-            sides.append((c, TRAINING, seed_train_means(main.get(c.model, []), steps),
-                          seed_train_means(main.get(c.baseline, []), steps)))
+            reached = sorted({r.final_steps for r in both})
+            for set_name, steps in [(TRAINING, reached[-1:] or [math.nan]),      # nan: no runs, listed as untested
+                                    (TRAINING_ALL, reached[:1] if len(reached) > 1 else [])]:
+                for at in steps:
+                    sides.append((c, set_name, seed_train_means(main.get(c.model, []), at),
+                                  seed_train_means(main.get(c.baseline, []), at)))
+                    shown[(c, set_name)] = at
         for c, set_name, a, b in sides:
             if not a or not b:
                 untested.append(f"{c.text} ({set_name}: {c.model} {len(a)}, {c.baseline} {len(b)} seeds)")
@@ -394,7 +402,9 @@ def _claims(doc: Document, ctx: ReportContext) -> None:
             rows.append([t, c.model, c.baseline, c.text, c.kind, set_name, r.model_seeds, r.baseline_seeds,
                          r.model_mean, r.baseline_mean, r.difference, r.ci_low, r.ci_high, r.margin, r.relative,
                          r.verdict])
-            md.append([t, c.text, set_name, f"{r.model_seeds}/{r.baseline_seeds}", fmt(r.model_mean),
+            at = shown.get((c, set_name), math.nan)
+            label = f"{set_name} to {at / 1e6:.1f} M steps" if math.isfinite(at) else set_name
+            md.append([t, c.text, label, f"{r.model_seeds}/{r.baseline_seeds}", fmt(r.model_mean),
                        fmt(r.baseline_mean), _interval(r.difference, r.ci_low, r.ci_high),
                        f"{r.relative:+.1f}%" if math.isfinite(r.relative) else "–", r.verdict])
         for arch in sorted(claim_archs & set(main)):
@@ -415,7 +425,8 @@ def _claims(doc: Document, ctx: ReportContext) -> None:
                   ["task", "claim", "set", "seeds (model/baseline)", "model mean", "baseline mean",
                    "difference [95% CI]", "relative difference", "verdict"], md,
                   note="per seed, the set's mean return over robots (set 'training': the mean episode return of "
-                       "the last ~5% of iterations in metrics.csv, of the runs that reached the furthest env steps); "
+                       "the last ~5% of iterations in metrics.csv, of the runs that reached the furthest env steps; "
+                       "'training_all': of every run, up to the env steps that all of them reached); "
                        "difference of the means over seeds, model − baseline, 95% CI from Welch's t; "
                        f"margin m = {m} of the baseline's mean. 'beats': reproduced if the CI lies above 0, not "
                        "reproduced if below m; 'at least as well': reproduced if above −m, not reproduced if below "

@@ -171,9 +171,19 @@ class Run:
     # metrics-derived numbers
     def final_train_return(self) -> float:
         """Mean episode return of the last ~5% of iterations."""
+        return self.train_return()
+
+    def train_return(self, up_to_steps: float = math.inf) -> float:
+        """Mean episode return of the last ~5% of the iterations at or below `up_to_steps` env steps (all of them by
+        default: the final training return)."""
         y = self.metrics.get("episode_return")
         if y is None:
             return float("nan")
+        if math.isfinite(up_to_steps):
+            s = self.metrics.get("env_steps")
+            if s is None:
+                return float("nan")
+            y = y[s <= up_to_steps]
         y = y[np.isfinite(y)]
         if not y.size:
             return float("nan")

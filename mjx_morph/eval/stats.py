@@ -160,10 +160,10 @@ def seed_set_means(runs: Sequence[Run], tag: str) -> list[float]:
 
 
 def seed_train_means(runs: Sequence[Run], steps: float) -> list[float]:
-    """Each seed's final training return (`Run.final_train_return`: the last ~5% of iterations of metrics.csv), for
-    the runs that reached `steps` env steps (a run cut short is at another point of its schedule); runs of one seed
-    are one sample, their mean, as in `seed_set_means`."""
-    return _per_seed(runs, lambda r: r.final_train_return() if r.final_steps == steps else float("nan"))
+    """Each seed's training return at `steps` env steps (`Run.train_return`: the last ~5% of the iterations up to
+    there in metrics.csv), for the runs that reached `steps` (one cut short is at another point of its schedule); runs
+    of one seed are one sample, their mean, as in `seed_set_means`."""
+    return _per_seed(runs, lambda r: r.train_return(steps) if r.final_steps >= steps else float("nan"))
 
 
 def _per_seed(runs: Sequence[Run], value: Callable[[Run], float]) -> list[float]:
