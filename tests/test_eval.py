@@ -214,6 +214,17 @@ def test_demo_trains_evaluates_and_reports(tmp_path, capsys):
     assert "[demo] no video:" in out or (d / "videos").is_dir()
 
 
+def test_the_preparation_runs_below_the_trainings_priority(monkeypatch):
+    """PrepareEvaluation's background thread lowers its own priority before it builds and compiles anything."""
+    from mjx_morph.eval import evaluate as ev
+    calls = []
+    monkeypatch.setattr(ev, "lower_thread_priority", lambda: calls.append("lowered"))
+    monkeypatch.setattr(ev, "prepare_evaluation", lambda *a, **k: calls.append("prepared") or ["test"])
+    p = ev.PrepareEvaluation(lambda left_s: ["test"])
+    p._prepare()
+    assert calls == ["lowered", "prepared"] and p.prepared == ["test"]
+
+
 def test_an_evaluation_prepared_while_training_builds_and_compiles_nothing_after(evaluated_runs, tmp_path,
                                                                                    monkeypatch):
     """prepare_evaluation (the study runs it in a background thread in training's last minutes) builds the env and

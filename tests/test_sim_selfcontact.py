@@ -235,6 +235,28 @@ def test_search_is_shared_by_geometry_and_spread_over_processes(robots):
     assert processes.processes_for(processes.PARALLEL_FROM - 1) == 1 == processes.processes_for(499, 500)
 
 
+def test_a_background_thread_and_its_processes_run_below_the_callers_priority():
+    """lower_thread_priority raises the nice value of the calling thread alone (Linux), and the processes it starts
+    afterwards (an env build's pool) inherit it: a preparation in a background thread yields the cores to training."""
+    import os
+    import sys
+    import threading
+    if not sys.platform.startswith("linux"):
+        pytest.skip("thread priorities are set on Linux only")
+    main = os.getpriority(os.PRIO_PROCESS, 0)
+    seen = {}
+
+    def background():
+        seen["lowered"] = processes.lower_thread_priority(3)
+        seen["thread"] = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
+        seen["children"] = processes.process_map(os.nice, [0, 0], 2, "nice values")
+    t = threading.Thread(target=background)
+    t.start()
+    t.join()
+    assert seen["lowered"] and seen["thread"] == main + 3 and seen["children"] == [main + 3] * 2
+    assert os.getpriority(os.PRIO_PROCESS, threading.get_native_id()) == main
+
+
 def test_searches_are_kept_on_disk_for_other_processes(tmp_path, monkeypatch):
     """With $MJX_MORPH_PAIR_CACHE set, a search is written there and read back instead of searched again (another
     process starts with an empty memory cache); other settings miss; an unreadable file is searched again with a
