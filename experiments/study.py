@@ -344,8 +344,9 @@ def run_study(c: StudyConfig, argv: Optional[list[str]] = None) -> None:
                       flush=True)
                 return
         # with a time limit, the (set, run) evaluations that fit, the study file's sets in order (each over the
-        # batch's seeds; one that does not fit gives way to shorter ones after it), counting only those not yet evaluated at the run's last checkpoint. Every process takes the
-        # same decision: whether a set is done is read on the main process (the others may not see eval/) and agreed.
+        # batch's seeds; one that does not fit gives way to shorter ones after it), counting only those not yet
+        # evaluated at the run's last checkpoint. Every process takes the same decision: whether a set is done is read
+        # on the main process (the others may not see eval/) and agreed.
         wait_for_preparation(functools.partial(print, flush=True))     # its time is spent either way
         prepared = prep.prepared if prep is not None else []
         steps = [RunDir(r.dir).latest_step() for r in members]        # what evaluate_run evaluates

@@ -387,13 +387,12 @@ def _claims(doc: Document, ctx: ReportContext) -> None:
                   seed_set_means(main.get(c.baseline, []), c.set)) for c in CLAIMS]
         for c in TRAINING_CLAIMS:
             both = [r for a in (c.model, c.baseline) for r in main.get(a, []) if math.isfinite(r.final_train_return())]
-            reached = sorted({r.final_steps for r in both})
-            for set_name, steps in [(TRAINING, reached[-1:] or [math.nan]),      # nan: no runs, listed as untested
-                                    (TRAINING_ALL, reached[:1] if len(reached) > 1 else [])]:
-                for at in steps:
-                    sides.append((c, set_name, seed_train_means(main.get(c.model, []), at),
-                                  seed_train_means(main.get(c.baseline, []), at)))
-                    shown[(c, set_name)] = at
+            reached = sorted({r.final_steps for r in both}) or [math.nan]     # nan: no runs, listed as untested
+            points = {TRAINING: reached[-1], **({TRAINING_ALL: reached[0]} if len(reached) > 1 else {})}
+            for set_name, at in points.items():
+                sides.append((c, set_name, seed_train_means(main.get(c.model, []), at),
+                              seed_train_means(main.get(c.baseline, []), at)))
+                shown[(c, set_name)] = at
         for c, set_name, a, b in sides:
             if not a or not b:
                 untested.append(f"{c.text} ({set_name}: {c.model} {len(a)}, {c.baseline} {len(b)} seeds)")
