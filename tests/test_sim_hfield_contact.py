@@ -191,14 +191,14 @@ def test_group_equals_every_prism():
         h, pos, mat, radius, half = _group(rng, mx, 12)
         one = lambda hp, hm, p_, m_, r_, hl: hfield_contact.hfield_geom(   # noqa: E731
             h.replace(pos=hp, mat=hm), p_, m_, r_, hl, subgrid, ncon)
-        full = [np.asarray(x).reshape(12 * ncon, *x.shape[2:]) for x in jax.vmap(one)(h.pos, h.mat, pos, mat,
-                                                                                      radius, half)]
+        full = [np.asarray(x).reshape(12 * ncon, *x.shape[2:])     # jitted: one program, not op by op
+                for x in jax.jit(jax.vmap(one))(h.pos, h.mat, pos, mat, radius, half)]
         counts = np.asarray(hfield_contact.candidate_counts(h, pos, mat, radius, half, subgrid))
         n_full = int((full[0] < 1.0).sum())
         assert n_full > 15 and counts.sum() >= n_full, (n_full, counts)
-        group = [np.asarray(x) for x in hfield_contact.hfield_group(h, pos, mat, radius, half, subgrid, ncon,
-                                                                    int(counts.sum()))]
-        few = [np.asarray(x) for x in hfield_contact.hfield_group(h, pos, mat, radius, half, subgrid, ncon, 12)]
+        group_of = jax.jit(hfield_contact.hfield_group, static_argnums=(5, 6, 7))
+        group = [np.asarray(x) for x in group_of(h, pos, mat, radius, half, subgrid, ncon, int(counts.sum()))]
+        few = [np.asarray(x) for x in group_of(h, pos, mat, radius, half, subgrid, ncon, 12)]
     act = full[0] < 1.0
     np.testing.assert_array_equal(group[0] < 1.0, act)
     for g, f in zip(group, full):
