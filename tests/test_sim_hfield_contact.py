@@ -139,10 +139,10 @@ def test_bound_never_drops_a_contact():
     centre = np.concatenate([lo + rng.uniform(-0.3, 0.4, (n, 2)), rng.uniform(-0.1, 0.6, (n, 1))], axis=1)
     a, b = centre - half[:, None] * axis, centre + half[:, None] * axis
     with jax.enable_x64(True):
-        dist = jax.vmap(hfield_contact.prism_contact, in_axes=(0, None, 0, 0, 0))(
+        dist = jax.jit(jax.vmap(hfield_contact.prism_contact, in_axes=(0, None, 0, 0, 0)))(
             jnp.asarray(tops), -0.1, jnp.asarray(a), jnp.asarray(b), jnp.asarray(radius))[0]
-        bound = jax.vmap(lambda a_, b_, r_, lo_, zt: hfield_contact._bound(a_, b_, r_, lo_[None], jnp.asarray(cell),
-                                                                           zt[None])[0])(
+        bound = jax.jit(jax.vmap(lambda a_, b_, r_, lo_, zt: hfield_contact._bound(a_, b_, r_, lo_[None],
+                                                                                   jnp.asarray(cell), zt[None])[0]))(
             jnp.asarray(a), jnp.asarray(b), jnp.asarray(radius), jnp.asarray(lo), jnp.asarray(tops[:, :, 2].max(1)))
     dist, bound = np.asarray(dist), np.asarray(bound)
     touch = dist < 0
