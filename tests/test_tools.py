@@ -69,3 +69,34 @@ def test_xla_cache_travels_oldest_programs_first_within_its_size(tmp_path):
     assert r.returncode == 0 and "no compilation cache here" in r.stdout and not (tmp_path / "x.tar.gz").exists()
     r = subprocess.run([sys.executable, str(SCRIPT.parent / "xla_cache.py"), "copy"], capture_output=True, text=True)
     assert r.returncode == 2 and "usage:" in r.stderr
+
+
+def test_xla_cache_packs_this_leases_programs_before_carried_ones(tmp_path):
+    """After an unpack, pack takes the programs compiled since first (oldest first), then the carried ones that were
+    read (access time after modification time) before the unread, newest first: stale programs give way."""
+    import os
+    import sys
+    import tarfile
+    sys.path.insert(0, str(SCRIPT.parent))
+    try:
+        import xla_cache
+    finally:
+        sys.path.pop(0)
+    earlier = tmp_path / "earlier"
+    earlier.mkdir()
+    for name in ("hit", "stale-old", "stale-new"):
+        (earlier / name).write_bytes(os.urandom(100_000))
+    xla_cache.pack(earlier, tmp_path / "carried.tar.gz")
+    cache = tmp_path / "xla"
+    assert xla_cache.unpack(tmp_path / "carried.tar.gz", cache) == 3
+    assert set(xla_cache.carried_list(cache).read_text().split()) == {"hit", "stale-old", "stale-new"}
+    times = {"hit": (3000, 1000), "stale-old": (1500, 1500), "stale-new": (2000, 2000),     # (access, modification)
+             "new-update": (5000, 5000), "new-init": (4000, 4000)}
+    for name in ("new-update", "new-init"):
+        (cache / name).write_bytes(os.urandom(100_000))
+    for name, t in times.items():
+        os.utime(cache / name, t)
+    packed, count, _ = xla_cache.pack(cache, tmp_path / "out.tar.gz", max_mb=450_000 / 2 ** 20)
+    assert (packed, count) == (4, 5)
+    with tarfile.open(tmp_path / "out.tar.gz") as tar:
+        assert tar.getnames() == ["new-init", "new-update", "hit", "stale-new"]

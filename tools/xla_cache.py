@@ -1,13 +1,14 @@
 """Carry JAX's persistent compilation cache from one lent GPU machine to the next (tools/device_job.sh).
 
-    python3 tools/xla_cache.py pack <cache dir> <archive.tar.gz> [max MiB]    # oldest programs first, up to max MiB
+    python3 tools/xla_cache.py pack <cache dir> <archive.tar.gz> [max MiB]    # this lease's programs first, up to max MiB
     python3 tools/xla_cache.py unpack <archive.tar.gz> <cache dir>
 
 A fresh machine compiles the train step for ~100-150 s in a lease's first call; the programs compiled in an earlier
 lease serve it when they travel (`.gpu/xla-cache.tar.gz`, carried). JAX reads an entry only when its key matches: the
 same program (the training code unchanged), JAX version, compiler options and GPU model; other entries are ignored.
-The oldest entries go first, since a lease compiles its training programs before its evaluations. Plain Python (no
-JAX): it runs before the wheels are installed and after the command ended.
+What this lease compiled goes first, oldest first (a lease compiles its training programs before its evaluations),
+then what earlier leases brought, those read in this lease before the others (`pack`). Plain Python (no JAX): it runs
+before the wheels are installed and after the command ended.
 """
 from __future__ import annotations
 
@@ -18,11 +19,29 @@ from pathlib import Path
 MAX_MB = 15.0       # what one file from $OUT may be (16 MiB), less a margin
 
 
+def carried_list(cache: Path) -> Path:
+    """Where unpack lists the files it wrote (relative paths), so that pack can tell them apart: beside the cache
+    directory, not in it (JAX's own)."""
+    return cache.parent / f"{cache.name}.carried"
+
+
 def pack(cache: Path, archive: Path, max_mb: float = MAX_MB) -> tuple[int, int, int]:
-    """The cache's files, oldest first, into `archive` while their sizes add up to at most `max_mb` MiB (a file that
-    would cross it is left out, and smaller later ones still go; the entries are compressed already, gzip gains
-    little); returns (files packed, files in the cache, bytes of the cache)."""
-    files = sorted((p for p in cache.rglob("*") if p.is_file()), key=lambda p: (p.stat().st_mtime, str(p)))
+    """The cache's files into `archive` while their sizes add up to at most `max_mb` MiB (a file that would cross it
+    is left out, and smaller later ones still go; the entries are compressed already, gzip gains little), in this
+    order: the programs compiled here, oldest first (a lease compiles its training programs first); then those an
+    earlier lease brought (`unpack`), the ones read since (a hit: the file system set their access time after the
+    modification time that unpack gave them) before the others, newest first within each. So programs that no longer
+    match the code give way to the new ones. Returns (files packed, files in the cache, bytes of the cache)."""
+    marker = carried_list(cache)
+    carried = set(marker.read_text().split("\n")) - {""} if marker.is_file() else set()
+    files = [p for p in cache.rglob("*") if p.is_file()]
+
+    def rank(p: Path):
+        st = p.stat()
+        if str(p.relative_to(cache)) not in carried:
+            return (0, st.st_mtime, str(p))
+        return (1 if st.st_atime > st.st_mtime else 2, -st.st_mtime, str(p))
+    files.sort(key=rank)
     total, limit, size, keep = sum(p.stat().st_size for p in files), int(max_mb * 2 ** 20), 0, []
     for p in files:
         if size + p.stat().st_size > limit:
@@ -37,11 +56,13 @@ def pack(cache: Path, archive: Path, max_mb: float = MAX_MB) -> tuple[int, int, 
 
 
 def unpack(archive: Path, cache: Path) -> int:
-    """Extract `archive` into `cache` (plain files only, no paths outside it); returns the files written."""
+    """Extract `archive` into `cache` (plain files only, no paths outside it, their times as packed) and list them in
+    `carried_list(cache)`; returns the files written."""
     cache.mkdir(parents=True, exist_ok=True)
     with tarfile.open(archive, "r:gz") as tar:
         members = [m for m in tar.getmembers() if m.isfile()]
         tar.extractall(cache, members=members, filter="data")
+    carried_list(cache).write_text("".join(f"{m.name}\n" for m in members))
     return len(members)
 
 
