@@ -370,7 +370,8 @@ def run_study(c: StudyConfig, argv: Optional[list[str]] = None) -> None:
                     evaluate_run(r.dir, sets, episodes=c.episodes)
         distributed.barrier("evaluated")
         if len(fit) < len(jobs):
-            left = ", ".join(f"{r.dir}: {s}" for i, (s, r) in enumerate(jobs) if i not in fit)
+            taken = set(fit)
+            left = ", ".join(f"{r.dir}: {s}" for i, (s, r) in enumerate(jobs) if i not in taken)
             print(f"[study] time limit: evaluation of {left} left for the rerun", flush=True)
             return
     print(f"[study] done; report: python -m experiments.report runs=[{Path(c.out) / c.name}] out=<dir>")

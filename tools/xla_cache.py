@@ -1,6 +1,6 @@
 """Carry JAX's persistent compilation cache from one lent GPU machine to the next (tools/device_job.sh).
 
-    python3 tools/xla_cache.py pack <cache dir> <archive.tar.gz> [max MiB]    # this lease's programs first, up to max MiB
+    python3 tools/xla_cache.py pack <cache dir> <archive.tar.gz> [max MiB]    # this lease's programs first
     python3 tools/xla_cache.py unpack <archive.tar.gz> <cache dir>
 
 A fresh machine compiles the train step for ~100-150 s in a lease's first call; the programs compiled in an earlier

@@ -382,18 +382,17 @@ def _claims(doc: Document, ctx: ReportContext) -> None:
     rows, md = [], []
     claim_archs = {a for c in CLAIMS for a in (c.model, c.baseline)}
     for t in ctx.tasks:
-        main, untested, shown = ctx.main[t], [], {}
+        main, untested = ctx.main[t], []
+        # (claim, set, model's seed means, baseline's, env steps of a training row: nan for an eval set)
         sides = [(c, c.set, seed_set_means(main.get(c.model, []), c.set),
-                  seed_set_means(main.get(c.baseline, []), c.set)) for c in CLAIMS]
+                  seed_set_means(main.get(c.baseline, []), c.set), math.nan) for c in CLAIMS]
         for c in TRAINING_CLAIMS:
             both = [r for a in (c.model, c.baseline) for r in main.get(a, []) if math.isfinite(r.final_train_return())]
             reached = sorted({r.final_steps for r in both}) or [math.nan]     # nan: no runs, listed as untested
             points = {TRAINING: reached[-1], **({TRAINING_ALL: reached[0]} if len(reached) > 1 else {})}
-            for set_name, at in points.items():
-                sides.append((c, set_name, seed_train_means(main.get(c.model, []), at),
-                              seed_train_means(main.get(c.baseline, []), at)))
-                shown[(c, set_name)] = at
-        for c, set_name, a, b in sides:
+            sides += [(c, set_name, seed_train_means(main.get(c.model, []), at),
+                       seed_train_means(main.get(c.baseline, []), at), at) for set_name, at in points.items()]
+        for c, set_name, a, b, at in sides:
             if not a or not b:
                 untested.append(f"{c.text} ({set_name}: {c.model} {len(a)}, {c.baseline} {len(b)} seeds)")
                 continue
@@ -401,7 +400,6 @@ def _claims(doc: Document, ctx: ReportContext) -> None:
             rows.append([t, c.model, c.baseline, c.text, c.kind, set_name, r.model_seeds, r.baseline_seeds,
                          r.model_mean, r.baseline_mean, r.difference, r.ci_low, r.ci_high, r.margin, r.relative,
                          r.verdict])
-            at = shown.get((c, set_name), math.nan)
             label = f"{set_name} to {at / 1e6:.1f} M steps" if math.isfinite(at) else set_name
             md.append([t, c.text, label, f"{r.model_seeds}/{r.baseline_seeds}", fmt(r.model_mean),
                        fmt(r.baseline_mean), _interval(r.difference, r.ci_low, r.ci_high),
