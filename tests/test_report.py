@@ -18,7 +18,7 @@ from scipy import stats
 from mjx_morph.eval import plots
 from mjx_morph.eval.report import CLAIMS, build_report
 from mjx_morph.eval.runs import NotARunDir, Run, classify, find_run_dirs, name_variants
-from mjx_morph.eval.stats import TASK_RANGES, claim_test, mean_curve
+from mjx_morph.eval.stats import TASK_RANGES, claim_test, furthest_mean_curve, mean_curve
 from mjx_morph.unimal.variants import CHANGE_TYPES
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -336,6 +336,12 @@ def test_mean_curve_band():
     assert n[0] == 2 and n[-1] == 1 and np.isnan(lo[-1]) and np.isnan(m[-1])
     inside = grid <= x[49]
     assert np.allclose(m[inside], grid[inside] + 1) and np.isnan(m[~inside]).all()
+    # what mean_curve leaves out there: the seeds that reach furthest, from where the first one ends
+    assert furthest_mean_curve([(x, x), (x[:50], x[:50] + 2)]) is None       # one seed reaches furthest: no mean
+    assert furthest_mean_curve([(x, x), (x, x + 4)]) is None                  # all end together
+    g, fm, flo, fhi, k = furthest_mean_curve([(x, x), (x, x + 4), (x[:50], x[:50] + 2)], points=100, smooth=False)
+    assert k == 2 and g[0] >= x[49] and g[-1] == x[-1] and np.allclose(fm, g + 2)
+    assert np.isfinite(flo).all() and np.all(flo < fm) and np.all(fhi > fm)
 
 
 def test_learning_curves_show_seeds_below_three_and_a_band_from_three(tmp_path, monkeypatch):
@@ -347,7 +353,7 @@ def test_learning_curves_show_seeds_below_three_and_a_band_from_three(tmp_path, 
     seen = {}
 
     def capture(curves, out, **kw):
-        seen.update(curves=curves, members=kw["members"])
+        seen.update(curves=curves, members=kw["members"], tails=kw["tails"])
         return real(curves, out, **kw)
     real = plots.mean_curves
     monkeypatch.setattr(plots, "mean_curves", capture)
@@ -356,7 +362,7 @@ def test_learning_curves_show_seeds_below_three_and_a_band_from_three(tmp_path, 
     _, _, lo3, hi3 = seen["curves"]["modumorph"]
     assert lo2 is None and hi2 is None and len(seen["members"]["rmomo"]) == 2
     assert np.isfinite(lo3).any() and np.all(lo3[np.isfinite(lo3)] <= hi3[np.isfinite(lo3)])
-    assert seen["members"]["modumorph"] == []
+    assert seen["members"]["modumorph"] == [] and seen["tails"] == {}     # all seeds of a model end together
     # each thin line is that seed's own curve (40 iterations: a smoothing window of 1), ending at its last return
     for (x, y), seed in zip(seen["members"]["rmomo"], (0, 1)):
         rows = _csv(tmp_path / "runs" / f"ft-rmomo-s{seed}" / "metrics.csv")
@@ -371,6 +377,13 @@ def test_learning_curves_show_seeds_below_three_and_a_band_from_three(tmp_path, 
     assert np.isnan(m[-1]) and np.isnan(lo[-1]) and np.isfinite(m[0]) and np.isfinite(lo[0])
     assert grid[np.isfinite(m)].max() <= 25 * 1000
     assert [x[-1] for x, _ in seen["members"]["modumorph"]] == [25 * 1000, 40 * 1000, 40 * 1000]
+    # past 25 k steps, dashed: the mean of the two seeds that reach 40 k (2 seeds: no band), labelled so
+    tx, tm, tlo, thi, label = seen["tails"]["modumorph"]
+    assert tx[0] >= 25 * 1000 and tx[-1] == 40 * 1000 and tlo is None and thi is None
+    ys = [np.array([float(r["episode_return"]) for r in _csv(tmp_path / "runs2" / f"ft-modumorph-s{s}" / "metrics.csv")])
+          for s in (1, 2)]
+    assert tm[-1] == pytest.approx(np.mean([y[-1] for y in ys]), abs=1e-6)     # a smoothing window of one
+    assert label == "modumorph: the 2 seeds that reach 40,000"
 
 
 def test_find_run_dirs(tmp_path):

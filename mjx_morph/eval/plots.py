@@ -44,22 +44,32 @@ def _millions(ax) -> None:
 
 def mean_curves(curves: Mapping[str, tuple], out: str | Path, title: str = "", xlabel: str = "env steps",
                 ylabel: str = "mean episode return", labels: Mapping[str, str] | None = None,
-                members: Mapping[str, Sequence[tuple]] | None = None) -> Path:
+                members: Mapping[str, Sequence[tuple]] | None = None,
+                tails: Mapping[str, tuple] | None = None) -> Path:
     """One line per key from `curves[key] = (x, mean, lo, hi)`, shaded between lo and hi where finite (pass
-    lo = hi = None for no band); `members[key]`: curves (x, y) drawn thin in the key's colour (e.g. each seed)."""
+    lo = hi = None for no band); `members[key]`: curves (x, y) drawn thin in the key's colour (e.g. each seed);
+    `tails[key] = (x, mean, lo, hi, label)`: a dashed continuation in the key's colour, with its own legend entry."""
     colors = arch_colors(list(curves))
     fig, ax = plt.subplots(figsize=(7, 4.2))
+
+    def band(x, lo, hi, color, alpha):
+        if lo is not None and hi is not None:
+            lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+            ok = np.isfinite(lo) & np.isfinite(hi)
+            if ok.any():
+                ax.fill_between(x, np.where(ok, lo, np.nan), np.where(ok, hi, np.nan), color=color, alpha=alpha, lw=0)
+
     for key, (x, mean, lo, hi) in curves.items():
         for mx, my in (members or {}).get(key, ()):
             ax.plot(mx, my, color=colors[key], lw=0.8, alpha=0.6)
         x, mean = np.asarray(x, float), np.asarray(mean, float)
         ax.plot(x, mean, color=colors[key], lw=2, label=(labels or {}).get(key, key))
-        if lo is not None and hi is not None:
-            lo, hi = np.asarray(lo, float), np.asarray(hi, float)
-            ok = np.isfinite(lo) & np.isfinite(hi)
-            if ok.any():
-                ax.fill_between(x, np.where(ok, lo, np.nan), np.where(ok, hi, np.nan), color=colors[key],
-                                alpha=0.2, lw=0)
+        band(x, lo, hi, colors[key], 0.2)
+        if key in (tails or {}):
+            tx, tm, tlo, thi, tlabel = tails[key]
+            tx = np.asarray(tx, float)
+            ax.plot(tx, np.asarray(tm, float), color=colors[key], lw=2, ls="--", label=tlabel)
+            band(tx, tlo, thi, colors[key], 0.12)
     if max((np.nanmax(np.asarray(c[0], float)) for c in curves.values() if len(c[0])), default=0) >= 1e6:
         _millions(ax)
     ax.set_xlabel(xlabel)

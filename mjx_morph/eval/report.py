@@ -54,9 +54,9 @@ from . import plots
 from .document import Document, fmt, fmt_steps, pm, write_csv
 from .params import param_count
 from .runs import CONTEXT_GROUPS, Run, classify, find_run_dirs, name_variants, read_run
-from .stats import (CLAIM_MARGIN, TASK_RANGES, Stat, change_stats, ci95, claim_test, mean_curve, normalised_or_nan,
-                    repeated_seeds, robot_difference, seed_average, seed_count, seed_set_means, seed_train_means,
-                    set_stat, stat_of)
+from .stats import (CLAIM_MARGIN, TASK_RANGES, Stat, change_stats, ci95, claim_test, furthest_mean_curve, mean_curve,
+                    normalised_or_nan, repeated_seeds, robot_difference, seed_average, seed_count, seed_set_means,
+                    seed_train_means, set_stat, stat_of)
 
 SETS = ("train", "test", "val", "variants")
 TASK_ORDER = tuple(TASK_RANGES)
@@ -157,7 +157,7 @@ BAND_MIN_SEEDS = 3
 def _learning_curves(doc: Document, ctx: ReportContext) -> None:
     tasks, main = ctx.tasks, ctx.main
     for t in tasks:
-        curves, labels, members = {}, {}, {}
+        curves, labels, members, tails = {}, {}, {}, {}
         for a, rs in main[t].items():
             cs = [(r.metrics["env_steps"], r.metrics["episode_return"]) for r in rs
                   if "env_steps" in r.metrics and "episode_return" in r.metrics]
@@ -169,14 +169,21 @@ def _learning_curves(doc: Document, ctx: ReportContext) -> None:
                 thin = len(cs) >= 2 and (not banded or n.min() < len(cs))
                 members[a] = [mean_curve([c])[:2] for c in cs] if thin else []
                 labels[a] = f"{a} ({len(cs)} seed{'s' if len(cs) != 1 else ''})"
+                far = furthest_mean_curve(cs)   # past the common end: the seeds that reach furthest, dashed
+                if far is not None:
+                    g, fm, flo, fhi, k = far
+                    band = k >= BAND_MIN_SEEDS
+                    tails[a] = (g, fm, flo if band else None, fhi if band else None,
+                                f"{a}: the {k} seeds that reach {fmt_steps(g[-1])}")
         if not curves:
             doc.missing.append(f"{t}: learning curves — no main run has episode returns in metrics.csv")
             continue
         p = plots.mean_curves(curves, doc.out / f"learning_curve_{t}.png", title=f"{t}: training return",
-                              labels=labels, members=members)
+                              labels=labels, members=members, tails=tails)
         doc.figure(p, f"{t}: mean training episode return against env steps, mean over seeds where all of them "
                       f"reach (band: 95% CI from {BAND_MIN_SEEDS} seeds; with 2 seeds, or seeds of unequal length, "
-                      f"each seed as a thin line; main runs: all train robots and context features).")
+                      f"each seed as a thin line; dashed, where some seeds end early: the mean of those that reach "
+                      f"furthest, the claims' set 'training'; main runs: all train robots and context features).")
 
 
 def _set_cell(x: Stat | None, seeds: int) -> str:

@@ -280,3 +280,22 @@ def mean_curve(curves: Sequence[tuple[np.ndarray, np.ndarray]], points: int = CU
     mean = ys.mean(0)                              # nan where a curve is missing
     half = np.array([ci95(c) if len(curves) >= 2 and np.isfinite(c).all() else np.nan for c in ys.T])
     return grid, mean, mean - half, mean + half, count
+
+
+def furthest_mean_curve(curves: Sequence[tuple[np.ndarray, np.ndarray]], points: int = CURVE_POINTS,
+                        smooth: bool = True):
+    """Where some curves end early: (grid, mean, lo, hi, n) of the n >= 2 curves that reach furthest, on the stretch
+    past the point where all curves end (from that point on), the part of the picture that `mean_curve` leaves out;
+    None where all curves end together or fewer than 2 reach furthest. The same seeds as the report's claim set
+    'training' (the runs at the furthest env steps)."""
+    curves = [(np.asarray(x, float), np.asarray(y, float)) for x, y in curves]
+    curves = [(x, y) for x, y in curves if np.isfinite(x).any()]
+    if len(curves) < 3:
+        return None
+    ends = [np.nanmax(x) for x, _ in curves]
+    far = [c for c, e in zip(curves, ends) if e == max(ends)]
+    if not 2 <= len(far) < len(curves):
+        return None
+    grid, mean, lo, hi, _ = mean_curve(far, points, smooth)
+    past = grid >= min(ends)
+    return grid[past], mean[past], lo[past], hi[past], len(far)
