@@ -5,6 +5,8 @@ shared with the CLI subprocesses the tests start: compilation is most of the sui
 on the 2-core CPU machine took 6.5 min instead of 13.8."""
 from __future__ import annotations
 
+import fcntl
+import json
 import os
 from pathlib import Path
 
@@ -37,39 +39,64 @@ def smoke_config(*overrides: str):
     return compose_run_config(["preset=smoke", "robots=gen/train", "progress=false", *overrides])
 
 
+def once_per_session(tmp_path_factory, name: str, build):
+    """`build(folder)`'s JSON value, computed once per test session also when pytest-xdist runs it in several
+    processes: the first process to ask builds it in a folder all of them share, holding a lock; the others wait for
+    it and read the value back (the smoke runs and their evaluation took ~130 s of CPU twice, once per process)."""
+    root = tmp_path_factory.getbasetemp()
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        root = root.parent                  # the session's folder, above each worker's own
+    done = root / f"{name}.json"
+    with open(root / f"{name}.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)    # released when the file closes, also if build raises
+        if not done.exists():
+            done.write_text(json.dumps(build(root)))
+        return json.loads(done.read_text())
+
+
+def _smoke_run(tmp_path_factory, name: str, *overrides: str):
+    from mjx_morph.run import train
+
+    def build(root):
+        d = root / name
+        train(smoke_config(f"run_dir={d}", *overrides))
+        return str(d)
+    d = once_per_session(tmp_path_factory, name, build)
+    return Path(d), smoke_config(f"run_dir={d}", *overrides)
+
+
 @pytest.fixture(scope="session")
 def smoke_run(tmp_path_factory):
-    """One finished smoke run of rmomo, shared by the training, evaluation, report and render tests (its compiled
-    train step is cached per process, so other smoke runs of the same config compile nothing)."""
-    from mjx_morph.run import train
-    d = tmp_path_factory.mktemp("runs") / "smoke-rmomo"
-    cfg = smoke_config(f"run_dir={d}")
-    train(cfg)
-    return d, cfg
+    """One finished smoke run of rmomo, shared by the training, evaluation, report and render tests (trained once per
+    session; in the process that trained it, its compiled train step is cached, so other smoke runs of the same config
+    compile nothing, and the other processes read it from the persistent compilation cache). Tests copy it before
+    changing it."""
+    return _smoke_run(tmp_path_factory, "smoke-rmomo")
 
 
 @pytest.fixture(scope="session")
 def smoke_run_ff(tmp_path_factory):
     """The same smoke run for the feed-forward MetaMorph."""
-    from mjx_morph.run import train
-    d = tmp_path_factory.mktemp("runs") / "smoke-metamorph"
-    cfg = smoke_config(f"run_dir={d}", "arch=metamorph")
-    train(cfg)
-    return d, cfg
+    return _smoke_run(tmp_path_factory, "smoke-metamorph", "arch=metamorph")
 
 
 EVAL_STEPS = 30   # episode length of the evaluations in the tests
 
 
 @pytest.fixture(scope="session")
-def evaluated_runs(smoke_run, smoke_run_ff):
+def evaluated_runs(tmp_path_factory, smoke_run, smoke_run_ff):
     """Both smoke runs evaluated on short episodes: rmomo on train, its variants and (labelled) test = the train
-    robots again; metamorph on train and test. Shared by the evaluation and report tests."""
+    robots again; metamorph on train and test. Shared by the evaluation and report tests (once per session)."""
     from mjx_morph.eval.evaluate import evaluate_run
-    kw = dict(episodes=2, seed=0, zero_state_steps=10, episode_length=EVAL_STEPS, trace_steps=EVAL_STEPS,
-              log=EVAL_LOG.append)
-    evaluate_run(smoke_run[0], ["train", "variants", "test:train"], zero_state_sets=("train", "test"), **kw)
-    evaluate_run(smoke_run_ff[0], ["train", "test:train"], **kw)
+
+    def build(root):
+        log: list[str] = []
+        kw = dict(episodes=2, seed=0, zero_state_steps=10, episode_length=EVAL_STEPS, trace_steps=EVAL_STEPS,
+                  log=log.append)
+        evaluate_run(smoke_run[0], ["train", "variants", "test:train"], zero_state_sets=("train", "test"), **kw)
+        evaluate_run(smoke_run_ff[0], ["train", "test:train"], **kw)
+        return log
+    EVAL_LOG[:] = once_per_session(tmp_path_factory, "evaluated-runs", build)
     return smoke_run[0], smoke_run_ff[0]
 
 
