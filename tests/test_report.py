@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import json
+import math
 import re
 import subprocess
 import sys
@@ -267,6 +268,29 @@ def test_claim_test_verdicts():
             assert np.isnan(r.ci_low) and np.isnan(r.ci_high)
     with pytest.raises(ValueError, match="claim kind"):
         claim_test(base, base, "worse")
+
+
+def test_seeds_for_power():
+    """The seeds per side the claims table plans with: the normal-approximation formula at the observed difference
+    (its distance from the bound: 0 for 'better', -m for 'level') and seed spreads, and what it promises: about 80%
+    of simulated experiments of that size reproduce the claim."""
+    base = [100.0, 101.0, 99.0]
+    z2 = (stats.norm.ppf(0.975) + stats.norm.ppf(0.8)) ** 2
+    wide = [40.0, 160.0, 100.0]
+    assert claim_test(wide, base, "level").seeds_for_power == math.ceil(z2 * (3600 + 1) / 5.0 ** 2)   # 0 + m
+    assert np.isnan(claim_test(wide, base, "better").seeds_for_power)         # no difference: no number of seeds
+    assert np.isnan(claim_test([80.0, 81.0, 79.0], base, "better").seeds_for_power)   # the data point against it
+    assert claim_test([110.0, 112.0, 111.0], base, "better").seeds_for_power == 1
+    assert np.isnan(claim_test([130.0], base, "better").seeds_for_power)
+    # 80% power, simulated: seeds ~ N(1100, 100) against N(1000, 100); the planned n reproduces "better" ~80% of the
+    # time (Welch's t at n = 16 a little less than the normal approximation's 80%)
+    rng = np.random.default_rng(0)
+    n = int(claim_test(1100 + 100 * np.array([-1.0, 0, 1]), 1000 + 100 * np.array([-1.0, 0, 1]),
+                       "better").seeds_for_power)
+    assert n == math.ceil(z2 * 2 * 100 ** 2 / 100 ** 2) == 16
+    hits = np.mean([claim_test(rng.normal(1100, 100, n), rng.normal(1000, 100, n), "better").verdict == "reproduced"
+                    for _ in range(2000)])
+    assert 0.72 < hits < 0.84, hits
 
 
 def _claim_rows(out: Path) -> dict:

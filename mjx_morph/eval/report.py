@@ -54,9 +54,9 @@ from . import plots
 from .document import Document, fmt, fmt_steps, pm, write_csv
 from .params import param_count
 from .runs import CONTEXT_GROUPS, Run, classify, find_run_dirs, name_variants, read_run
-from .stats import (CLAIM_MARGIN, TASK_RANGES, Stat, change_stats, ci95, claim_test, furthest_mean_curve, mean_curve,
-                    normalised_or_nan, repeated_seeds, robot_difference, seed_average, seed_count, seed_set_means,
-                    seed_train_means, set_stat, stat_of)
+from .stats import (CLAIM_MARGIN, CLAIM_POWER, TASK_RANGES, Stat, change_stats, ci95, claim_test,
+                    furthest_mean_curve, mean_curve, normalised_or_nan, repeated_seeds, robot_difference, seed_average,
+                    seed_count, seed_set_means, seed_train_means, set_stat, stat_of)
 
 SETS = ("train", "test", "val", "variants")
 TASK_ORDER = tuple(TASK_RANGES)
@@ -406,11 +406,12 @@ def _claims(doc: Document, ctx: ReportContext) -> None:
             r = claim_test(a, b, c.kind)
             rows.append([t, c.model, c.baseline, c.text, c.kind, set_name, r.model_seeds, r.baseline_seeds,
                          r.model_mean, r.baseline_mean, r.difference, r.ci_low, r.ci_high, r.margin, r.relative,
-                         r.verdict])
+                         r.verdict, r.seeds_for_power])
             label = f"{set_name} to {at / 1e6:.1f} M steps" if math.isfinite(at) else set_name
             md.append([t, c.text, label, f"{r.model_seeds}/{r.baseline_seeds}", fmt(r.model_mean),
                        fmt(r.baseline_mean), _interval(r.difference, r.ci_low, r.ci_high),
-                       f"{r.relative:+.1f}%" if math.isfinite(r.relative) else "–", r.verdict])
+                       f"{r.relative:+.1f}%" if math.isfinite(r.relative) else "–", r.verdict,
+                       f"{r.seeds_for_power:.0f}" if math.isfinite(r.seeds_for_power) else "–"])
         for arch in sorted(claim_archs & set(main)):
             for seed, paths in repeated_seeds(main[arch]).items():
                 doc.missing.append(f"{t}, {arch}: {len(paths)} runs of seed {seed} ({', '.join(paths)}) count as one "
@@ -425,9 +426,10 @@ def _claims(doc: Document, ctx: ReportContext) -> None:
         doc.table("Claims", "claims",
                   ["task", "model", "baseline", "claim", "kind", "set", "model_seeds", "baseline_seeds", "model_mean",
                    "baseline_mean", "difference", "ci95_low", "ci95_high", "margin", "relative_difference_pct",
-                   "verdict"], rows,
+                   "verdict", "seeds_for_power"], rows,
                   ["task", "claim", "set", "seeds (model/baseline)", "model mean", "baseline mean",
-                   "difference [95% CI]", "relative difference", "verdict"], md,
+                   "difference [95% CI]", "relative difference", "verdict",
+                   f"seeds per side for {100 * CLAIM_POWER:g}% power"], md,
                   note="per seed, the set's mean return over robots (set 'training': the mean episode return of "
                        "the last ~5% of iterations in metrics.csv, of the runs that reached the furthest env steps; "
                        "'training_all': of every run, up to the env steps that all of them reached); "
@@ -435,7 +437,9 @@ def _claims(doc: Document, ctx: ReportContext) -> None:
                        f"margin m = {m} of the baseline's mean. 'beats': reproduced if the CI lies above 0, not "
                        "reproduced if below m; 'at least as well': reproduced if above −m, not reproduced if below "
                        "0; otherwise inconclusive. Main runs of the groups named by the architecture alone (A/B arms "
-                       "are not compared).")
+                       f"are not compared). Seeds per side for {100 * CLAIM_POWER:g}% power: how many seeds of each "
+                       "would reproduce the claim that often if the observed difference and seed spreads held "
+                       "(normal approximation; – where the difference does not clear the claim's bound).")
 
 
 def _mean_trace(traces: list[list]) -> np.ndarray | None:

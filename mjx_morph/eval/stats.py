@@ -35,6 +35,8 @@ CURVE_POINTS = 200
 #: the margin m of `claim_test`, a fraction of the baseline's mean return: the smallest difference that counts. A gain
 #: below m is no gain ("better" not reproduced); a loss below m is "at least as well" (non-inferiority, "level")
 CLAIM_MARGIN = 0.05
+#: power the report plans seeds for: a claim test at the observed effect and seed spreads succeeds this often
+CLAIM_POWER = 0.8
 #: the verdicts of `claim_test`
 REPRODUCED, NOT_REPRODUCED, INCONCLUSIVE, TOO_FEW_SEEDS = ("reproduced", "not reproduced", "inconclusive",
                                                           "inconclusive (n < 2)")
@@ -207,7 +209,9 @@ def welch_ci95(a: Sequence[float], b: Sequence[float]) -> tuple[float, float]:
 @dataclass(frozen=True)
 class ClaimTest:
     """What `claim_test` found: seeds per side, means over seeds, the difference model - baseline with its 95% CI
-    (nan with fewer than 2 seeds on a side), the margin m (in return) and the verdict."""
+    (nan with fewer than 2 seeds on a side), the margin m (in return), the verdict, and the seeds per side that would
+    reproduce the claim with probability CLAIM_POWER if the observed difference and seed spreads are the truth (nan
+    where the difference does not clear the claim's bound, or with fewer than 2 seeds on a side)."""
     model_seeds: int
     baseline_seeds: int
     model_mean: float
@@ -217,6 +221,7 @@ class ClaimTest:
     ci_high: float
     margin: float
     verdict: str
+    seeds_for_power: float = float("nan")
 
     @property
     def relative(self) -> float:
@@ -246,7 +251,20 @@ def claim_test(model: Sequence[float], baseline: Sequence[float], kind: str,
         verdict = NOT_REPRODUCED
     else:
         verdict = INCONCLUSIVE
-    return ClaimTest(int(a.size), int(b.size), ma, mb, ma - mb, lo, hi, m, verdict)
+    return ClaimTest(int(a.size), int(b.size), ma, mb, ma - mb, lo, hi, m, verdict,
+                     seeds_for_power(a, b, ma - mb - delta))
+
+
+def seeds_for_power(a: np.ndarray, b: np.ndarray, effect: float, power: float = CLAIM_POWER) -> float:
+    """Seeds per side for which a two-sided 95% test of a difference `effect` (its distance from the bound the CI
+    must clear) succeeds with probability `power`, at the sides' seed standard deviations: n = (z_0.975 + z_power)^2
+    (s_a^2 + s_b^2) / effect^2, the normal approximation (Welch's t needs ~1-2 seeds more at n < 10), rounded up.
+    nan with fewer than 2 seeds on a side or an effect <= 0 (no number of seeds reproduces a claim the data point
+    against)."""
+    if a.size < 2 or b.size < 2 or not effect > 0:
+        return float("nan")
+    z = stats.norm.ppf(0.975) + stats.norm.ppf(power)
+    return float(math.ceil(z ** 2 * (a.var(ddof=1) + b.var(ddof=1)) / effect ** 2))
 
 
 def _smooth(y: np.ndarray, k: int) -> np.ndarray:
