@@ -221,7 +221,7 @@ class ClaimTest:
     ci_high: float
     margin: float
     verdict: str
-    seeds_for_power: float = float("nan")
+    seeds_for_power: float
 
     @property
     def relative(self) -> float:
@@ -308,8 +308,6 @@ def furthest_mean_curve(curves: Sequence[tuple[np.ndarray, np.ndarray]], points:
     'training' (the runs at the furthest env steps)."""
     curves = [(np.asarray(x, float), np.asarray(y, float)) for x, y in curves]
     curves = [(x, y) for x, y in curves if np.isfinite(x).any()]
-    if len(curves) < 3:
-        return None
     ends = [np.nanmax(x) for x, _ in curves]
     far = [c for c, e in zip(curves, ends) if e == max(ends)]
     if not 2 <= len(far) < len(curves):
