@@ -3,10 +3,12 @@
     python -m experiments.study train_size archs=[rmomo,modumorph] seeds=[0,1,2] env=ft
     python -m experiments.study context_features archs=[rmomo] dry_run=true          # list the runs only
     python -m experiments.study train_size archs=[rmomo] -- preset=smoke robots=gen/train   # extra run overrides
+    python -m experiments.study paper archs=[rmomo,metamorph,rmemo] seeds=[2] seeds_of.rmomo=[6,7]   # other seeds
 
 A study file lists `runs` (name -> overrides of experiments.run), and optionally `common` (overrides of every run),
-`archs` and `seeds` (the defaults of archs= and seeds=) and `evaluate` (the sets to evaluate each run on, in order;
-`evaluate=[...]` for others, e.g. the zero-shot sets first: `evaluate=[test,variants]`).
+`archs` and `seeds` (the defaults of archs= and seeds=; `seeds_of.<arch>=[...]` gives one architecture other
+seeds, so that one plan holds the runs each model still needs) and `evaluate` (the sets to evaluate each run on, in
+order; `evaluate=[...]` for others, e.g. the zero-shot sets first: `evaluate=[test,variants]`).
 
 Run directories: <out>/<study>/<env>-<arch>-<run>-s<seed> (default out: runs/studies). Each run is an ordinary
 `experiments.run` run: rerunning the study resumes unfinished runs; finished ones are not retrained, and a set
@@ -49,7 +51,7 @@ import sys
 import threading
 import time
 from pathlib import Path
-from typing import List, Optional
+from typing import Dict, List, Optional
 
 import yaml
 from omegaconf import MISSING
@@ -107,6 +109,8 @@ class StudyConfig:
     name: str = MISSING                 # the study: a file of experiments/conf/study (without .yaml)
     archs: Optional[List[str]] = None   # None: the study file's `archs`, else [rmomo, modumorph]
     seeds: Optional[List[int]] = None   # None: the study file's `seeds`, else [0]
+    seeds_of: Dict[str, List[int]] = dataclasses.field(default_factory=dict)   # other seeds for some of the archs,
+                                        # e.g. 'seeds_of.rmomo=[6,7]': one plan with the runs each model still needs
     env: EnvConfig = dataclasses.field(default_factory=EnvConfig)   # env=<task> and env.<option>=... for every run
     out: str = "runs/studies"
     episodes: int = 4                   # evaluation episodes per robot
@@ -153,12 +157,19 @@ def plan(c: StudyConfig) -> list[StudyRun]:
                                          if getattr(c.env, k.name) != getattr(default, k.name)]
     common = list(spec.get("common", []))        # overrides of every run of the study (before each run's own)
     sets = c.evaluate if c.evaluate is not None else spec.get("evaluate", ["train", "test"])
+    archs = list(c.archs if c.archs is not None else spec.get("archs", DEFAULT_ARCHS))
+    seeds_of = dict(c.seeds_of or {})
+    stray = [a for a in seeds_of if a not in archs]
+    if stray:
+        raise ValueError(f"seeds_of={seeds_of}: {', '.join(stray)} not among the study's architectures "
+                         f"({', '.join(archs)}); expected seeds for some of them")
+    seeds = c.seeds if c.seeds is not None else spec.get("seeds", [0])
     runs = []
-    for arch in (c.archs if c.archs is not None else spec.get("archs", DEFAULT_ARCHS)):
+    for arch in archs:
         for name, overrides in spec["runs"].items():
             if c.only is not None and name not in c.only:
                 continue
-            for seed in (c.seeds if c.seeds is not None else spec.get("seeds", [0])):
+            for seed in seeds_of.get(arch, seeds):
                 d = Path(c.out) / c.name / f"{c.env.task}-{arch}-{name}-s{seed}"
                 runs.append(StudyRun(d, [*env_over, f"arch={arch}", f"seed={seed}", f"run_dir={d}", *common,
                                          *overrides, *c.run],
@@ -383,6 +394,8 @@ def main(argv=None) -> int:
         i = argv.index("--")
         argv, extra = argv[:i], argv[i + 1:]
         argv.append("run=[" + ",".join(f"'{x}'" for x in extra) + "]")
+    # seeds_of.<arch>=[...] adds a key to a dict that starts empty: Hydra's `+` (the short form is what users type)
+    argv = [f"+{a}" if a.startswith("seeds_of.") else a for a in argv]
     return cli.main(lambda c: run_study(c, argv), "run_study", StudyConfig, __doc__, argv, positional="name")
 
 

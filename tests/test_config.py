@@ -306,6 +306,22 @@ def test_study_only_selects_runs_and_names_the_known_ones(capsys, unimals):
     assert "no val set" in capsys.readouterr().err
 
 
+def test_study_seeds_of_gives_an_architecture_other_seeds(capsys, unimals):
+    """seeds_of.<arch>=[...]: that architecture's seeds replace seeds= for it alone (one lease's plan of the runs each
+    model still needs, split over the workers one run each); an architecture outside the plan is refused."""
+    from experiments import study
+    assert study.main(["paper", "archs=[rmomo,metamorph]", "seeds=[2]", "seeds_of.rmomo=[6,7]", "workers=3",
+                       "dry_run=true"]) == 0
+    out = capsys.readouterr().out
+    runs = [ln for ln in out.splitlines() if ln.startswith("python -m experiments.run")]
+    assert [(ln.split("arch=")[1].split()[0], ln.split("seed=")[1].split()[0]) for ln in runs] == \
+        [("rmomo", "6"), ("rmomo", "7"), ("metamorph", "2")]
+    assert sorted(ln.split(": ")[1] for ln in out.splitlines() if ln.startswith("[study] worker")) == \
+        ["ft-metamorph-main-s2", "ft-rmomo-main-s6", "ft-rmomo-main-s7"]
+    assert study.main(["paper", "archs=[rmomo]", "seeds_of.modumorph=[1]", "dry_run=true"]) == 2
+    assert "modumorph not among the study's architectures (rmomo)" in capsys.readouterr().err
+
+
 def test_study_evaluate_overrides_the_study_files_sets(capsys, unimals):
     """evaluate=[...] replaces the study file's sets and their order (the zero-shot sets first under a time limit);
     a set the run's robots have not is refused before anything trains."""
