@@ -158,7 +158,7 @@ def plan(c: StudyConfig) -> list[StudyRun]:
     common = list(spec.get("common", []))        # overrides of every run of the study (before each run's own)
     sets = c.evaluate if c.evaluate is not None else spec.get("evaluate", ["train", "test"])
     archs = list(c.archs if c.archs is not None else spec.get("archs", DEFAULT_ARCHS))
-    seeds_of = dict(c.seeds_of or {})
+    seeds_of = dict(c.seeds_of)
     stray = [a for a in seeds_of if a not in archs]
     if stray:
         raise ValueError(f"seeds_of={seeds_of}: {', '.join(stray)} not among the study's architectures "
