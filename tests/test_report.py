@@ -593,3 +593,35 @@ def test_training_claim_reads_the_learning_curves_of_runs_that_reached_the_end(t
     assert float(r["baseline_mean"]) == pytest.approx(np.mean(b))
     assert r["verdict"] == _verdict_ref(a, b, "level")[0]
     assert f"| training_all to {cut / 1e6:.1f} M steps | 2/3 |" in text
+
+
+def test_pooled_returns_take_only_the_tasks_every_architecture_has(tmp_path):
+    """Normalised returns pooled across tasks: per set, over the tasks that every architecture evaluated on that set
+    has, so that one model's extra (harder) task does not sink its pooled mean; the task left out is named under
+    Missing. Both tasks pooled where both models have them."""
+    _, r_ft = make_run(tmp_path / "runs", "ft-rmomo-s0", "ft", "rmomo", evals=("test", "variants"), metrics=False)
+    _, r_in = make_run(tmp_path / "runs", "incline-rmomo-s0", "incline", "rmomo", evals=("test", "variants"),
+                       metrics=False, returns=(0, 300))
+    _, m_ft = make_run(tmp_path / "runs", "ft-modumorph-s0", "ft", "modumorph", evals=("test", "variants"),
+                       metrics=False)
+    _, m_in = make_run(tmp_path / "runs", "incline-modumorph-s0", "incline", "modumorph", evals=("test",),
+                       metrics=False)
+
+    def norm(per_robot, task):
+        lo, hi = TASK_RANGES[task]
+        return [(v - lo) / (hi - lo) for v in per_robot.values()]
+
+    md = build_report([tmp_path / "runs"], tmp_path / "out").read_text()
+    rows = {r["arch"]: r for r in _csv(tmp_path / "out" / "returns_pooled.csv")}
+    # test: both models have both tasks -> pooled over ft and incline
+    for arch, (ft, inc) in {"rmomo": (r_ft, r_in), "modumorph": (m_ft, m_in)}.items():
+        v = norm(ft["test"], "ft") + norm(inc["test"], "incline")
+        assert float(rows[arch]["test_normalised"]) == pytest.approx(np.mean(v), rel=1e-9)
+        assert int(rows[arch]["test_robots"]) == len(v)
+    # variants: only R-MoMo has incline -> ft alone, for both
+    for arch, ft in {"rmomo": r_ft, "modumorph": m_ft}.items():
+        v = norm(ft["variants"], "ft")
+        assert float(rows[arch]["variants_normalised"]) == pytest.approx(np.mean(v), rel=1e-9)
+    missing = md[md.index("## Missing"):]
+    assert "incline on variants (results of rmomo only)" in missing
+    assert "variants: ft" in md and "test: ft, incline" in md

@@ -20,7 +20,7 @@ runs of one task and architecture, e.g. "rmomo, scale_after_cell=true": `runs.na
 Statistics (`mjx_morph.eval.stats`): the per-robot mean returns of eval/<tag>.json are averaged over the seeds of a
 group (over the seeds that evaluated the robot), and mean and 95% CI (`ci95`, Student t) are taken over robots;
 normalised returns use `normalised` (the paper's per-task range) and are pooled across tasks as (task, robot)
-pairs. Learning curves: each seed's episode return against env steps, lightly smoothed, interpolated onto a common
+pairs, per set over the tasks that every architecture evaluated on that set has. Learning curves: each seed's episode return against env steps, lightly smoothed, interpolated onto a common
 grid; mean and 95% CI over the seeds covering each grid point (no band with one seed).
 
 Claims (`CLAIMS`, the paper's claims as data): per task, each model against its baseline on one eval set, on the
@@ -264,24 +264,36 @@ def _returns(doc: Document, ctx: ReportContext) -> None:
                   change_rows,
                   ["task", "arch", "change", "seeds", "robots", "return", "normalised"],
                   [[t, a, c, s, n, pm(m, ci), pm(nm, nci, 3)] for t, a, c, s, n, m, ci, nm, nci in change_rows])
-    # normalised returns pooled across tasks
+    # normalised returns pooled across tasks: per set, over the tasks on which every architecture evaluated on that
+    # set has results, so that no architecture's mean takes in a task the others lack (a harder task would sink it)
     archs = _order_archs(a for t in tasks for a in main[t])
-    pooled: dict[str, dict[str, Stat]] = {}
-    pooled_tasks: dict[str, list[str]] = {}
+    per_task: dict[tuple[str, str, str], list[float]] = {}
     for a in archs:
         for s in SETS:
-            vals = []
-            ts_ = []
             for t in tasks:
-                rs = main[t].get(a, [])
-                pr = seed_average(rs, s)
+                pr = seed_average(main[t].get(a, []), s)
                 if pr and t in TASK_RANGES:
-                    vals.extend(normalised_or_nan(list(pr.values()), t).tolist())
-                    ts_.append(t)
-            if vals:
-                pooled.setdefault(a, {})[s] = stat_of(vals, None, 0, norm_values=vals)
-                pooled_tasks.setdefault(a, [])
-                pooled_tasks[a] = sorted(set(pooled_tasks[a]) | set(ts_), key=_order_tasks(tasks).index)
+                    per_task[a, s, t] = normalised_or_nan(list(pr.values()), t).tolist()
+    pooled: dict[str, dict[str, Stat]] = {}
+    pooled_tasks: dict[str, list[str]] = {}
+    set_tasks: dict[str, list[str]] = {}
+    left_out: list[str] = []
+    for s in SETS:
+        with_s = [a for a in archs if any((a, s, t) in per_task for t in tasks)]
+        common = [t for t in tasks if with_s and all((a, s, t) in per_task for a in with_s)]
+        for t in tasks:
+            if t not in common and any((a, s, t) in per_task for a in with_s):
+                have = [a for a in with_s if (a, s, t) in per_task]
+                left_out.append(f"{t} on {s} (results of {', '.join(have)} only)")
+        if common:
+            set_tasks[s] = common
+        for a in with_s if common else []:
+            vals = [v for t in common for v in per_task[a, s, t]]
+            pooled.setdefault(a, {})[s] = stat_of(vals, None, 0, norm_values=vals)
+            pooled_tasks[a] = sorted(set(pooled_tasks.get(a, [])) | set(common), key=_order_tasks(tasks).index)
+    if left_out:
+        doc.missing.append("pooled normalised returns — tasks left out of the pool because not every architecture "
+                           "has them: " + "; ".join(left_out))
     if not pooled:
         doc.missing.append("pooled normalised returns — no main run has per-robot eval results on a known task")
         return
@@ -292,9 +304,9 @@ def _returns(doc: Document, ctx: ReportContext) -> None:
                            "title": "pooled over tasks and robots (95% CI)"}],
                          doc.out / "returns_pooled_normalised.png",
                          title="normalised returns, all tasks")
-    tasks_note = "; ".join(f"{a}: {', '.join(pooled_tasks[a])}" for a in pooled)
-    doc.figure(p, f"Normalised return pooled across tasks ((task, robot) pairs, seed-averaged), 95% CI; "
-                  f"tasks: {tasks_note}.")
+    tasks_note = "; ".join(f"{s}: {', '.join(ts_)}" for s, ts_ in set_tasks.items())
+    doc.figure(p, f"Normalised return pooled across tasks ((task, robot) pairs, seed-averaged), 95% CI; per set, the "
+                  f"tasks every architecture evaluated on it has: {tasks_note}.")
     prow, pmd = [], []
     for a in pooled:
         row, mrow = [a, " ".join(pooled_tasks[a])], [a, ", ".join(pooled_tasks[a])]
