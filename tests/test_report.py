@@ -293,6 +293,30 @@ def test_seeds_for_power():
     assert 0.72 < hits < 0.84, hits
 
 
+def test_claim_p_value_is_welchs_one_sided_and_agrees_with_the_verdict():
+    """p: Welch's one-sided p-value of "difference <= the claim's bound" (0 for 'better', -m for 'level'), computed
+    here by hand (Welch-Satterthwaite degrees of freedom, Student t); reproduced exactly when p < 0.025."""
+    def p_ref(a, b, delta):
+        a, b = np.asarray(a, float), np.asarray(b, float)
+        va, vb = a.var(ddof=1) / a.size, b.var(ddof=1) / b.size
+        df = (va + vb) ** 2 / (va ** 2 / (a.size - 1) + vb ** 2 / (b.size - 1))
+        return float(stats.t.sf((a.mean() - b.mean() - delta) / np.sqrt(va + vb), df))
+
+    rng = np.random.default_rng(1)
+    seen = set()
+    for _ in range(300):
+        a, b = rng.normal(1100, 150, rng.integers(2, 9)), rng.normal(1000, 150, rng.integers(2, 9))
+        for kind in ("better", "level"):
+            r = claim_test(a, b, kind)
+            delta = 0.0 if kind == "better" else -r.margin
+            assert r.p_value == pytest.approx(p_ref(a, b, delta), rel=1e-7, abs=1e-12)
+            assert (r.p_value < 0.025) == (r.verdict == "reproduced"), (a, b, kind)
+            seen.add(r.verdict)
+    assert {"reproduced", "inconclusive"} <= seen
+    assert np.isnan(claim_test([130.0], [100.0, 101.0], "better").p_value)
+    assert claim_test([110.0, 110.0], [100.0, 100.0], "better").p_value == 0.0       # no spread: the difference known
+
+
 def _claim_rows(out: Path) -> dict:
     return {(r["task"], r["model"], r["set"]): r for r in _csv(out / "claims.csv")}
 

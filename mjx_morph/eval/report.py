@@ -418,12 +418,12 @@ def _claims(doc: Document, ctx: ReportContext) -> None:
             r = claim_test(a, b, c.kind)
             rows.append([t, c.model, c.baseline, c.text, c.kind, set_name, r.model_seeds, r.baseline_seeds,
                          r.model_mean, r.baseline_mean, r.difference, r.ci_low, r.ci_high, r.margin, r.relative,
-                         r.verdict, r.seeds_for_power])
+                         r.verdict, r.p_value, r.seeds_for_power])
             label = f"{set_name} to {at / 1e6:.1f} M steps" if math.isfinite(at) else set_name
             md.append([t, c.text, label, f"{r.model_seeds}/{r.baseline_seeds}", fmt(r.model_mean),
                        fmt(r.baseline_mean), _interval(r.difference, r.ci_low, r.ci_high),
                        f"{r.relative:+.1f}%" if math.isfinite(r.relative) else "–", r.verdict,
-                       f"{r.seeds_for_power:.0f}" if math.isfinite(r.seeds_for_power) else "–"])
+                       _p(r.p_value), f"{r.seeds_for_power:.0f}" if math.isfinite(r.seeds_for_power) else "–"])
         for arch in sorted(claim_archs & set(main)):
             for seed, paths in repeated_seeds(main[arch]).items():
                 doc.missing.append(f"{t}, {arch}: {len(paths)} runs of seed {seed} ({', '.join(paths)}) count as one "
@@ -438,9 +438,9 @@ def _claims(doc: Document, ctx: ReportContext) -> None:
         doc.table("Claims", "claims",
                   ["task", "model", "baseline", "claim", "kind", "set", "model_seeds", "baseline_seeds", "model_mean",
                    "baseline_mean", "difference", "ci95_low", "ci95_high", "margin", "relative_difference_pct",
-                   "verdict", "seeds_for_power"], rows,
+                   "verdict", "p_one_sided", "seeds_for_power"], rows,
                   ["task", "claim", "set", "seeds (model/baseline)", "model mean", "baseline mean",
-                   "difference [95% CI]", "relative difference", "verdict",
+                   "difference [95% CI]", "relative difference", "verdict", "p (one-sided)",
                    f"seeds per side for {100 * CLAIM_POWER:g}% power"], md,
                   note="per seed, the set's mean return over robots (set 'training': the mean episode return of "
                        "the last ~5% of iterations in metrics.csv, of the runs that reached the furthest env steps; "
@@ -448,10 +448,19 @@ def _claims(doc: Document, ctx: ReportContext) -> None:
                        "difference of the means over seeds, model − baseline, 95% CI from Welch's t; "
                        f"margin m = {m} of the baseline's mean. 'beats': reproduced if the CI lies above 0, not "
                        "reproduced if below m; 'at least as well': reproduced if above −m, not reproduced if below "
-                       "0; otherwise inconclusive. Main runs of the groups named by the architecture alone (A/B arms "
+                       "0; otherwise inconclusive. p: Welch's one-sided p-value against the claim's bound (0 or −m): "
+                       "reproduced exactly when p < 0.025; where the data were looked at k times as seeds came in, "
+                       "p < 0.025 / k keeps the claim (Bonferroni). Main runs of the groups named by the architecture alone (A/B arms "
                        f"are not compared). Seeds per side for {100 * CLAIM_POWER:g}% power: how many seeds of each "
                        "would reproduce the claim that often if the observed difference and seed spreads held "
                        "(normal approximation; – where the difference does not clear the claim's bound).")
+
+
+def _p(p: float) -> str:
+    """A p-value for the tables: two significant digits, '<0.0001' below that, '–' for nan."""
+    if not math.isfinite(p):
+        return "–"
+    return "<0.0001" if p < 1e-4 else f"{p:.2g}"
 
 
 def _mean_trace(traces: list[list]) -> np.ndarray | None:

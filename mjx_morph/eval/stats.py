@@ -211,7 +211,9 @@ class ClaimTest:
     """What `claim_test` found: seeds per side, means over seeds, the difference model - baseline with its 95% CI
     (nan with fewer than 2 seeds on a side), the margin m (in return), the verdict, and the seeds per side that would
     reproduce the claim with probability CLAIM_POWER if the observed difference and seed spreads are the truth (nan
-    where the difference does not clear the claim's bound, or with fewer than 2 seeds on a side)."""
+    where the difference does not clear the claim's bound, or with fewer than 2 seeds on a side), and `p_value`: the
+    one-sided Welch p of "the difference is at most the claim's bound" (reproduced exactly when p < 0.025; a reader
+    who looked at the data k times as seeds came in asks p < 0.025 / k, Bonferroni's correction)."""
     model_seeds: int
     baseline_seeds: int
     model_mean: float
@@ -222,6 +224,7 @@ class ClaimTest:
     margin: float
     verdict: str
     seeds_for_power: float
+    p_value: float = float("nan")
 
     @property
     def relative(self) -> float:
@@ -252,7 +255,19 @@ def claim_test(model: Sequence[float], baseline: Sequence[float], kind: str,
     else:
         verdict = INCONCLUSIVE
     return ClaimTest(int(a.size), int(b.size), ma, mb, ma - mb, lo, hi, m, verdict,
-                     seeds_for_power(a, b, ma - mb - delta))
+                     seeds_for_power(a, b, ma - mb - delta), welch_p_above(a, b, delta))
+
+
+def welch_p_above(a: np.ndarray, b: np.ndarray, delta: float) -> float:
+    """One-sided p-value of Welch's t for H0: mean(a) - mean(b) <= delta against mean(a) - mean(b) > delta (scipy's
+    `ttest_ind(equal_var=False, alternative="greater")` with b shifted by delta): below 0.025 exactly when the 95%
+    Welch CI of the difference lies above delta. nan with fewer than 2 values on a side; 0 or 1 when neither side has
+    any spread (the difference is then known)."""
+    if a.size < 2 or b.size < 2:
+        return float("nan")
+    if a.var() + b.var() == 0:
+        return 0.0 if a.mean() - b.mean() > delta else 1.0
+    return float(stats.ttest_ind(a, b + delta, equal_var=False, alternative="greater").pvalue)
 
 
 def seeds_for_power(a: np.ndarray, b: np.ndarray, effect: float, power: float = CLAIM_POWER) -> float:
