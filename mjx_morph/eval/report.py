@@ -20,8 +20,9 @@ runs of one task and architecture, e.g. "rmomo, scale_after_cell=true": `runs.na
 Statistics (`mjx_morph.eval.stats`): the per-robot mean returns of eval/<tag>.json are averaged over the seeds of a
 group (over the seeds that evaluated the robot), and mean and 95% CI (`ci95`, Student t) are taken over robots;
 normalised returns use `normalised` (the paper's per-task range) and are pooled across tasks as (task, robot)
-pairs, per set over the tasks that every architecture evaluated on that set has. Learning curves: each seed's episode return against env steps, lightly smoothed, interpolated onto a common
-grid; mean and 95% CI over the seeds covering each grid point (no band with one seed).
+pairs, per set over the tasks that every architecture evaluated on that set has. Learning curves: each seed's
+episode return against env steps, lightly smoothed, interpolated onto a common grid; mean and 95% CI over the seeds
+covering each grid point (no band with one seed).
 
 Claims (`CLAIMS`, the paper's claims as data): per task, each model against its baseline on one eval set, on the
 main runs of the groups named exactly by the architecture (so not the arms of an A/B study, e.g. "rmomo,
@@ -275,22 +276,20 @@ def _returns(doc: Document, ctx: ReportContext) -> None:
                 if pr and t in TASK_RANGES:
                     per_task[a, s, t] = normalised_or_nan(list(pr.values()), t).tolist()
     pooled: dict[str, dict[str, Stat]] = {}
-    pooled_tasks: dict[str, list[str]] = {}
-    set_tasks: dict[str, list[str]] = {}
+    set_tasks: dict[str, list[str]] = {}        # per set, the tasks pooled
     left_out: list[str] = []
     for s in SETS:
         with_s = [a for a in archs if any((a, s, t) in per_task for t in tasks)]
         common = [t for t in tasks if with_s and all((a, s, t) in per_task for a in with_s)]
-        for t in tasks:
-            if t not in common and any((a, s, t) in per_task for a in with_s):
-                have = [a for a in with_s if (a, s, t) in per_task]
-                left_out.append(f"{t} on {s} (results of {', '.join(have)} only)")
-        if common:
-            set_tasks[s] = common
-        for a in with_s if common else []:
+        left_out += [f"{t} on {s} (results of {', '.join(a for a in with_s if (a, s, t) in per_task)} only)"
+                     for t in tasks if t not in common and any((a, s, t) in per_task for a in with_s)]
+        if not common:
+            continue
+        set_tasks[s] = common
+        for a in with_s:
             vals = [v for t in common for v in per_task[a, s, t]]
             pooled.setdefault(a, {})[s] = stat_of(vals, None, 0, norm_values=vals)
-            pooled_tasks[a] = sorted(set(pooled_tasks.get(a, [])) | set(common), key=_order_tasks(tasks).index)
+    pooled_tasks = {a: [t for t in tasks if any(t in set_tasks[s] for s in pooled[a])] for a in pooled}
     if left_out:
         doc.missing.append("pooled normalised returns — tasks left out of the pool because not every architecture "
                            "has them: " + "; ".join(left_out))
@@ -450,10 +449,11 @@ def _claims(doc: Document, ctx: ReportContext) -> None:
                        "reproduced if below m; 'at least as well': reproduced if above −m, not reproduced if below "
                        "0; otherwise inconclusive. p: Welch's one-sided p-value against the claim's bound (0 or −m): "
                        "reproduced exactly when p < 0.025; where the data were looked at k times as seeds came in, "
-                       "p < 0.025 / k keeps the claim (Bonferroni). Main runs of the groups named by the architecture alone (A/B arms "
-                       f"are not compared). Seeds per side for {100 * CLAIM_POWER:g}% power: how many seeds of each "
-                       "would reproduce the claim that often if the observed difference and seed spreads held "
-                       "(normal approximation; – where the difference does not clear the claim's bound).")
+                       "p < 0.025 / k keeps the claim (Bonferroni). Main runs of the groups named by the "
+                       "architecture alone (A/B arms are not compared). Seeds per side for "
+                       f"{100 * CLAIM_POWER:g}% power: how many seeds of each would reproduce the claim that often if "
+                       "the observed difference and seed spreads held (normal approximation; – where the difference "
+                       "does not clear the claim's bound).")
 
 
 def _p(p: float) -> str:
