@@ -35,11 +35,12 @@ def ci_ref(x) -> float:
     return float(stats.t.ppf(0.975, x.size - 1) * np.std(x, ddof=1) / np.sqrt(x.size))
 
 
-def _summary(task, arch, tag, per_robot, recurrent, rng):
+def _summary(task, arch, tag, per_robot, recurrent, rng, env_steps=40_000):
     v = np.array(list(per_robot.values()))
     lo, hi = TASK_RANGES[task]
     n = (v - lo) / (hi - lo)
-    d = {"run_dir": "x", "arch": arch, "task": task, "set": tag, "tag": tag, "checkpoint": 40, "env_steps": 40_000,
+    d = {"run_dir": "x", "arch": arch, "task": task, "set": tag, "tag": tag, "checkpoint": env_steps // 1000,
+         "env_steps": env_steps,
          "episodes": 2, "seed": 0, "episode_length": 1000, "robots": len(v), "episodes_total": 2 * len(v),
          "mean_return": float(v.mean()), "ci95_return": ci_ref(v), "mean_normalised": float(n.mean()),
          "ci95_normalised": ci_ref(n), "mean_length": 500.0, "fall_fraction": 0.5, "out_of_bounds_fraction": 0.0,
@@ -56,8 +57,10 @@ def _summary(task, arch, tag, per_robot, recurrent, rng):
 
 
 def make_run(root: Path, name: str, task="ft", arch="rmomo", seed=0, num_robots=None, context=None,
-             evals=("train", "test", "variants"), metrics=True, iters=40, returns=(50, 3000)) -> tuple[Path, dict]:
-    """A synthetic run directory, per-robot returns uniform in `returns`; returns (path, {tag: per_robot})."""
+             evals=("train", "test", "variants"), metrics=True, iters=40, returns=(50, 3000),
+             eval_steps=40_000) -> tuple[Path, dict]:
+    """A synthetic run directory, per-robot returns uniform in `returns`, its evaluations of the checkpoint at
+    `eval_steps` env steps; returns (path, {tag: per_robot})."""
     rng = np.random.default_rng(zlib.crc32(f"{name}|{task}|{arch}|{seed}".encode()))
     d = root / name
     (d / "eval").mkdir(parents=True)
@@ -80,7 +83,7 @@ def make_run(root: Path, name: str, task="ft", arch="rmomo", seed=0, num_robots=
         pr = {k: float(rng.uniform(*returns)) for k in names[tag]}
         per[tag] = pr
         (d / "eval" / f"{tag}.json").write_text(json.dumps(
-            _summary(task, arch, tag, pr, arch == "rmomo", rng), indent=1))
+            _summary(task, arch, tag, pr, arch == "rmomo", rng, eval_steps), indent=1))
     return d, per
 
 
@@ -339,7 +342,8 @@ def test_claims_table(report):
             np.mean(b))
         assert float(r["ci95_low"]) == pytest.approx(ci.low) and float(r["ci95_high"]) == pytest.approx(ci.high)
         assert float(r["relative_difference_pct"]) == pytest.approx(100 * (np.mean(a) / np.mean(b) - 1))
-        assert f"| ft | {c.text} | {c.set} | 2/2 | {np.mean(a):.1f} | {np.mean(b):.1f} |" in report["text"]
+        assert f"| ft | {c.text} | {c.set} at 0.0 M steps | 2/2 | {np.mean(a):.1f} | {np.mean(b):.1f} |" in report["text"]
+        assert float(r["env_steps"]) == 40_000
         if c.set == "variants":                                          # incline: not evaluated
             assert ("incline", "rmomo", "variants") not in rows
         else:
@@ -649,3 +653,35 @@ def test_pooled_returns_take_only_the_tasks_every_architecture_has(tmp_path):
     missing = md[md.index("## Missing"):]
     assert "incline on variants (results of rmomo only)" in missing
     assert "variants: ft" in md and "test: ft, incline" in md
+
+
+def test_eval_claims_compare_evaluations_at_the_same_env_steps(tmp_path):
+    """An eval-set claim compares policies at one point of training: where a model's seeds were evaluated at different
+    env steps, those at the steps both models have most seeds at; the others are named under Missing, and so is the
+    mixing in the returns table. Two models evaluated at no common steps leave the claim untested."""
+    at18, at20 = 18_022_400, 20_070_400
+    runs = {(a, s): make_run(tmp_path / "runs", f"incline-{a}-s{s}", "incline", a, s, evals=("test",), metrics=False,
+                             eval_steps=steps)[1]
+            for a, s, steps in (("rmomo", 0, at20), ("rmomo", 1, at18), ("rmomo", 2, at18),
+                                ("modumorph", 0, at18), ("modumorph", 1, at18))}
+    md = build_report([tmp_path / "runs"], tmp_path / "out").read_text()
+    r = _claim_rows(tmp_path / "out")[("incline", "rmomo", "test")]
+    a = _seed_means([runs[("rmomo", s)] for s in (1, 2)], "test")
+    b = _seed_means([runs[("modumorph", s)] for s in (0, 1)], "test")
+    assert (r["model_seeds"], r["baseline_seeds"], float(r["env_steps"])) == ("2", "2", at18)
+    assert float(r["model_mean"]) == pytest.approx(np.mean(a)) and float(r["baseline_mean"]) == pytest.approx(
+        np.mean(b))
+    assert "| incline | R-MoMo beats ModuMorph zero-shot on unseen topologies | test at 18.0 M steps | 2/2 |" in md
+    missing = md[md.index("## Missing"):]
+    assert "left out, evaluated at other steps: " in missing and "incline-rmomo-s0 (20.1M)" in missing
+    assert "incline, rmomo: test evaluated at different env steps (18.0M: 2 run(s), 20.1M: 1 run(s))" in missing
+    # no steps in common: untested, and why
+    for s in (0, 1):
+        make_run(tmp_path / "apart", f"ft-rmomo-s{s}", arch="rmomo", seed=s, evals=("test",), metrics=False,
+                 eval_steps=at20)
+        make_run(tmp_path / "apart", f"ft-modumorph-s{s}", arch="modumorph", seed=s, evals=("test",), metrics=False,
+                 eval_steps=at18)
+    md = build_report([tmp_path / "apart"], tmp_path / "out2").read_text()
+    assert not (tmp_path / "out2" / "claims.csv").exists()          # no claim could be tested
+    assert ("R-MoMo beats ModuMorph zero-shot on unseen topologies (test: evaluated at different env steps, rmomo "
+            "20.1M, modumorph 18.0M)") in md

@@ -27,7 +27,9 @@ covering each grid point (no band with one seed).
 Claims (`CLAIMS`, the paper's claims as data): per task, each model against its baseline on one eval set, on the
 main runs of the groups named exactly by the architecture (so not the arms of an A/B study, e.g. "rmomo,
 precision=bf16"), with seeds as the samples and the verdict rule of `stats.claim_test`; a claim that a side has no
-eval/<set>.json for is listed under "Missing". The training claims are also tested on the learning curves (set
+eval/<set>.json for is listed under "Missing". Policies are compared at one point of training: where a model's seeds
+were evaluated at different env steps (the checkpoint of eval/<set>.json), the claim takes the evaluations at the
+steps both models have most seeds at (`stats.common_eval_steps`) and names the others under "Missing". The training claims are also tested on the learning curves (set
 "training", `TRAINING_CLAIMS`: each seed's last ~5% of iterations in metrics.csv, runs at the furthest env steps;
 where some runs stopped short, also set "training_all": every run, at the env steps all of them reached).
 
@@ -55,9 +57,9 @@ from . import plots
 from .document import Document, fmt, fmt_steps, pm, write_csv
 from .params import param_count
 from .runs import CONTEXT_GROUPS, Run, classify, find_run_dirs, name_variants, read_run
-from .stats import (CLAIM_MARGIN, CLAIM_POWER, TASK_RANGES, Stat, change_stats, ci95, claim_test,
-                    furthest_mean_curve, mean_curve, normalised_or_nan, repeated_seeds, robot_difference, seed_average,
-                    seed_count, seed_set_means, seed_train_means, set_stat, stat_of)
+from .stats import (CLAIM_MARGIN, CLAIM_POWER, TASK_RANGES, Stat, change_stats, ci95, claim_test, common_eval_steps,
+                    eval_steps_of, furthest_mean_curve, mean_curve, normalised_or_nan, repeated_seeds,
+                    robot_difference, seed_average, seed_count, seed_set_means, seed_train_means, set_stat, stat_of)
 
 SETS = ("train", "test", "val", "variants")
 TASK_ORDER = tuple(TASK_RANGES)
@@ -218,6 +220,15 @@ def _returns(doc: Document, ctx: ReportContext) -> None:
             st = stats[a]
             if not any(st.values()):
                 continue
+            for s in SETS:
+                by_steps = eval_steps_of(rs, s)
+                if len(by_steps) > 1:
+                    doc.missing.append(
+                        f"{t}, {a}: {s} evaluated at different env steps ("
+                        + ", ".join(f"{fmt_steps(x) if x is not None else 'unknown'}: {len(v)} run(s)"
+                                    for x, v in by_steps.items())
+                        + "); the returns, their bars and the per-robot differences pool them, the claims compare "
+                          "one step")
             seeds = seed_count(rs)
             row, mrow = [t, a, seeds], [t, a, seeds]
             for s in SETS:
@@ -401,24 +412,26 @@ def _claims(doc: Document, ctx: ReportContext) -> None:
     claim_archs = {a for c in CLAIMS for a in (c.model, c.baseline)}
     for t in ctx.tasks:
         main, untested = ctx.main[t], []
-        # (claim, set, model's seed means, baseline's, env steps of a training row: nan for an eval set)
-        sides = [(c, c.set, seed_set_means(main.get(c.model, []), c.set),
-                  seed_set_means(main.get(c.baseline, []), c.set), math.nan) for c in CLAIMS]
+        # (claim, set, model's seed means, baseline's, env steps: of the evaluations compared, or a training row's
+        # point; nan where the eval files do not say)
+        sides = [_eval_claim_sides(doc, t, main, c) for c in CLAIMS]
         for c in TRAINING_CLAIMS:
             both = [r for a in (c.model, c.baseline) for r in main.get(a, []) if math.isfinite(r.final_train_return())]
             reached = sorted({r.final_steps for r in both}) or [math.nan]     # nan: no runs, listed as untested
             points = {TRAINING: reached[-1], **({TRAINING_ALL: reached[0]} if len(reached) > 1 else {})}
             sides += [(c, set_name, seed_train_means(main.get(c.model, []), at),
-                       seed_train_means(main.get(c.baseline, []), at), at) for set_name, at in points.items()]
-        for c, set_name, a, b, at in sides:
-            if not a or not b:
-                untested.append(f"{c.text} ({set_name}: {c.model} {len(a)}, {c.baseline} {len(b)} seeds)")
+                       seed_train_means(main.get(c.baseline, []), at), at, None) for set_name, at in points.items()]
+        for c, set_name, a, b, at, why in sides:
+            if why or not a or not b:
+                untested.append(f"{c.text} ({set_name}: "
+                                + (why or f"{c.model} {len(a)}, {c.baseline} {len(b)} seeds") + ")")
                 continue
             r = claim_test(a, b, c.kind)
-            rows.append([t, c.model, c.baseline, c.text, c.kind, set_name, r.model_seeds, r.baseline_seeds,
+            rows.append([t, c.model, c.baseline, c.text, c.kind, set_name, at, r.model_seeds, r.baseline_seeds,
                          r.model_mean, r.baseline_mean, r.difference, r.ci_low, r.ci_high, r.margin, r.relative,
                          r.verdict, r.p_value, r.seeds_for_power])
-            label = f"{set_name} to {at / 1e6:.1f} M steps" if math.isfinite(at) else set_name
+            point = "to" if set_name in (TRAINING, TRAINING_ALL) else "at"
+            label = f"{set_name} {point} {at / 1e6:.1f} M steps" if math.isfinite(at) else set_name
             md.append([t, c.text, label, f"{r.model_seeds}/{r.baseline_seeds}", fmt(r.model_mean),
                        fmt(r.baseline_mean), _interval(r.difference, r.ci_low, r.ci_high),
                        f"{r.relative:+.1f}%" if math.isfinite(r.relative) else "–", r.verdict,
@@ -435,13 +448,16 @@ def _claims(doc: Document, ctx: ReportContext) -> None:
     if rows:
         m = f"{100 * CLAIM_MARGIN:g}%"
         doc.table("Claims", "claims",
-                  ["task", "model", "baseline", "claim", "kind", "set", "model_seeds", "baseline_seeds", "model_mean",
+                  ["task", "model", "baseline", "claim", "kind", "set", "env_steps", "model_seeds", "baseline_seeds",
+                   "model_mean",
                    "baseline_mean", "difference", "ci95_low", "ci95_high", "margin", "relative_difference_pct",
                    "verdict", "p_one_sided", "seeds_for_power"], rows,
                   ["task", "claim", "set", "seeds (model/baseline)", "model mean", "baseline mean",
                    "difference [95% CI]", "relative difference", "verdict", "p (one-sided)",
                    f"seeds per side for {100 * CLAIM_POWER:g}% power"], md,
-                  note="per seed, the set's mean return over robots (set 'training': the mean episode return of "
+                  note="per seed, the set's mean return over robots, of the evaluations at the env steps named (where "
+                       "a model's seeds were evaluated at different steps, those at the steps both models have most "
+                       "seeds at; the others are named under Missing) (set 'training': the mean episode return of "
                        "the last ~5% of iterations in metrics.csv, of the runs that reached the furthest env steps; "
                        "'training_all': of every run, up to the env steps that all of them reached); "
                        "difference of the means over seeds, model − baseline, 95% CI from Welch's t; "
@@ -454,6 +470,30 @@ def _claims(doc: Document, ctx: ReportContext) -> None:
                        f"{100 * CLAIM_POWER:g}% power: how many seeds of each would reproduce the claim that often if "
                        "the observed difference and seed spreads held (normal approximation; – where the difference "
                        "does not clear the claim's bound).")
+
+
+def _eval_claim_sides(doc: Document, task: str, main: dict[str, list[Run]], c: Claim) -> tuple:
+    """(claim, set, model's seed means, baseline's, env steps evaluated (nan: the files do not say), why untested or
+    None) of an eval-set claim: the evaluations at the env steps `common_eval_steps` picks; those at other steps are
+    named under Missing. Untested where both models evaluated the set but at no env steps in common."""
+    runs = {a: main.get(a, []) for a in (c.model, c.baseline)}
+    at = common_eval_steps(runs[c.model], runs[c.baseline], c.set)
+    if at is None:
+        have = {a: [fmt_steps(x) for x in eval_steps_of(rs, c.set) if x is not None] for a, rs in runs.items()}
+        why = (f"evaluated at different env steps, {c.model} {', '.join(have[c.model])}, {c.baseline} "
+               f"{', '.join(have[c.baseline])}" if all(have.values()) else None)
+        return (c, c.set, seed_set_means(runs[c.model], c.set), seed_set_means(runs[c.baseline], c.set), math.nan,
+                why)
+    steps, ra, rb = at
+    left = [r for a, kept in ((c.model, ra), (c.baseline, rb)) for r in runs[a]
+            if c.set in r.evals and all(r is not k for k in kept)]
+    if left:
+        doc.missing.append(f"{task}: {c.text} compares the {c.set} evaluations at {fmt_steps(steps or math.nan)} env "
+                           "steps; left out, evaluated at other steps: "
+                           + ", ".join(f"{_display(r.path)} ({fmt_steps(r.eval_steps(c.set) or math.nan)})"
+                                       for r in left))
+    return (c, c.set, seed_set_means(ra, c.set), seed_set_means(rb, c.set), math.nan if steps is None else steps,
+            None)
 
 
 def _p(p: float) -> str:

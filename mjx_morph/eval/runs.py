@@ -164,6 +164,12 @@ class Run:
     def iterations(self) -> int:
         return len(self.metrics.get("iteration", []))
 
+    def eval_steps(self, tag: str) -> float | None:
+        """The env steps of the checkpoint evaluated in eval/<tag>.json (None: no such file, or one that does not
+        say)."""
+        v = (self.evals.get(tag) or {}).get("env_steps")
+        return float(v) if isinstance(v, (int, float)) and math.isfinite(v) else None
+
     def per_robot(self, tag: str) -> dict[str, float]:
         pr = (self.evals.get(tag) or {}).get("per_robot") or {}
         return {k: float(v) for k, v in pr.items() if isinstance(v, (int, float)) and math.isfinite(v)}

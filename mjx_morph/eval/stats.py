@@ -168,6 +168,31 @@ def seed_train_means(runs: Sequence[Run], steps: float) -> list[float]:
     return _per_seed(runs, lambda r: r.train_return(steps) if r.final_steps >= steps else float("nan"))
 
 
+def eval_steps_of(runs: Sequence[Run], tag: str) -> dict[float | None, list[Run]]:
+    """{env steps of the checkpoint evaluated: [runs]} over the runs that evaluated `tag` (key None: a file that does
+    not say), in order of env steps."""
+    by: dict[float | None, list[Run]] = {}
+    for r in runs:
+        if tag in r.evals:
+            by.setdefault(r.eval_steps(tag), []).append(r)
+    return dict(sorted(by.items(), key=lambda kv: (kv[0] is not None, kv[0] or 0.0)))
+
+
+def common_eval_steps(runs_a: Sequence[Run], runs_b: Sequence[Run], tag: str
+                      ) -> tuple[float | None, list[Run], list[Run]] | None:
+    """Where two groups' evaluations on `tag` are compared (a policy at 18 M steps is not one at 20 M): of the env
+    steps both groups evaluated at, the one with the most seeds on the smaller side, then the most seeds in all, then
+    the latest; returns (those steps, the runs of each group evaluated there), the steps None where the files do not
+    say (they count as one step of their own). None where the groups share no step."""
+    a, b = eval_steps_of(runs_a, tag), eval_steps_of(runs_b, tag)
+    both = [s for s in a if s in b]
+    if not both:
+        return None
+    at = max(both, key=lambda s: (min(seed_count(a[s]), seed_count(b[s])), seed_count(a[s]) + seed_count(b[s]),
+                                  s is not None, s or 0.0))
+    return at, a[at], b[at]
+
+
 def _per_seed(runs: Sequence[Run], value: Callable[[Run], float]) -> list[float]:
     """The mean of `value` over each seed's runs (a run without a seed alone), runs whose value is not finite left
     out."""
