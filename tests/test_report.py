@@ -675,6 +675,13 @@ def test_eval_claims_compare_evaluations_at_the_same_env_steps(tmp_path):
     missing = md[md.index("## Missing"):]
     assert "left out, evaluated at other steps: " in missing and "incline-rmomo-s0 (20.1M)" in missing
     assert "incline, rmomo: test evaluated at different env steps (18.0M: 2 run(s), 20.1M: 1 run(s))" in missing
+    # the per-robot differences take the same evaluations as the claim
+    diff = {row["robot"]: row for row in _csv(tmp_path / "out" / "robot_diff_incline.csv")}
+    for robot, row in diff.items():
+        assert float(row["rmomo_return"]) == pytest.approx(np.mean([runs[("rmomo", s)]["test"][robot] for s in (1, 2)]))
+        assert float(row["modumorph_return"]) == pytest.approx(
+            np.mean([runs[("modumorph", s)]["test"][robot] for s in (0, 1)]))
+    assert len(diff) == len(TEST)
     # no steps in common: untested, and why
     for s in (0, 1):
         make_run(tmp_path / "apart", f"ft-rmomo-s{s}", arch="rmomo", seed=s, evals=("test",), metrics=False,

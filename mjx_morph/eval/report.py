@@ -29,7 +29,8 @@ main runs of the groups named exactly by the architecture (so not the arms of an
 precision=bf16"), with seeds as the samples and the verdict rule of `stats.claim_test`; a claim that a side has no
 eval/<set>.json for is listed under "Missing". Policies are compared at one point of training: where a model's seeds
 were evaluated at different env steps (the checkpoint of eval/<set>.json), the claim takes the evaluations at the
-steps both models have most seeds at (`stats.common_eval_steps`) and names the others under "Missing". The training claims are also tested on the learning curves (set
+steps both models have most seeds at (`stats.common_eval_steps`) and names the others under "Missing"; the
+per-robot differences take the same evaluations (the returns table and its bars pool every step, and say so). The training claims are also tested on the learning curves (set
 "training", `TRAINING_CLAIMS`: each seed's last ~5% of iterations in metrics.csv, runs at the furthest env steps;
 where some runs stopped short, also set "training_all": every run, at the env steps all of them reached).
 
@@ -227,8 +228,8 @@ def _returns(doc: Document, ctx: ReportContext) -> None:
                         f"{t}, {a}: {s} evaluated at different env steps ("
                         + ", ".join(f"{fmt_steps(x) if x is not None else 'unknown'}: {len(v)} run(s)"
                                     for x, v in by_steps.items())
-                        + "); the returns, their bars and the per-robot differences pool them, the claims compare "
-                          "one step")
+                        + "); the returns and their bars pool them, the per-robot differences and the claims "
+                          "compare the steps both models have most seeds at")
             seeds = seed_count(rs)
             row, mrow = [t, a, seeds], [t, a, seeds]
             for s in SETS:
@@ -340,7 +341,7 @@ def _pair(archs_with_test: list[str], compare: tuple[str, ...]) -> tuple[str, st
 
 def _robot_differences(doc: Document, ctx: ReportContext) -> None:
     tasks, main, compare = ctx.tasks, ctx.main, ctx.compare
-    summary, pairs = [], {}
+    summary, pairs, at_common_steps = [], {}, {}
     for t in tasks:
         with_test = [a for a, rs in main[t].items() if seed_average(rs, "test")]
         pair = _pair(with_test, compare)
@@ -353,7 +354,8 @@ def _robot_differences(doc: Document, ctx: ReportContext) -> None:
                                f"showed {pair[0]} vs {pair[1]} instead")
         pairs[t] = pair
         a, b = pair
-        rows = robot_difference(main[t][a], main[t][b], "test")
+        runs_a, runs_b = at_common_steps[t] = _at_common_steps(main[t][a], main[t][b], "test")
+        rows = robot_difference(runs_a, runs_b, "test")
         if not rows:
             doc.missing.append(f"{t}: per-robot difference — {a} and {b} have no test robot in common")
             continue
@@ -379,7 +381,7 @@ def _robot_differences(doc: Document, ctx: ReportContext) -> None:
         for t in tasks:
             if pairs.get(t) == pair and t in TASK_RANGES:
                 rows += [(f"{t}:{n}", va, vb, d)
-                         for n, va, vb, d in robot_difference(main[t][a], main[t][b], "test", t)]
+                         for n, va, vb, d in robot_difference(*at_common_steps[t], "test", t)]
         rows.sort(key=lambda r: (-r[3], r[0]))
         write_csv(doc.out / "robot_diff_pooled.csv", ["task:robot", f"{a}_normalised", f"{b}_normalised",
                                                         "difference"], rows)
@@ -397,6 +399,13 @@ def _robot_differences(doc: Document, ctx: ReportContext) -> None:
                   ["task", "a", "b", "robots", "mean a − b", "a better on", "per-robot data"],
                   [[t, a, b, n, pm(m, ci, 3 if t.startswith("pooled") else 1), f"{k}/{n}", f"[{f}]({f})"]
                    for t, a, b, n, m, ci, k, f in summary])
+
+
+def _at_common_steps(runs_a: list[Run], runs_b: list[Run], tag: str) -> tuple[list[Run], list[Run]]:
+    """The runs of two groups evaluated on `tag` at the env steps `common_eval_steps` picks, as the claims compare
+    them (all of them where the groups share no step)."""
+    at = common_eval_steps(runs_a, runs_b, tag)
+    return (runs_a, runs_b) if at is None else (at[1], at[2])
 
 
 def _interval(d: float, lo: float, hi: float) -> str:
