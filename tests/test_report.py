@@ -342,7 +342,8 @@ def test_claims_table(report):
             np.mean(b))
         assert float(r["ci95_low"]) == pytest.approx(ci.low) and float(r["ci95_high"]) == pytest.approx(ci.high)
         assert float(r["relative_difference_pct"]) == pytest.approx(100 * (np.mean(a) / np.mean(b) - 1))
-        assert f"| ft | {c.text} | {c.set} at 0.0 M steps | 2/2 | {np.mean(a):.1f} | {np.mean(b):.1f} |" in report["text"]
+        row = f"| ft | {c.text} | {c.set} at 0.0 M steps | 2/2 | {np.mean(a):.1f} | {np.mean(b):.1f} |"
+        assert row in report["text"]
         assert float(r["env_steps"]) == 40_000
         if c.set == "variants":                                          # incline: not evaluated
             assert ("incline", "rmomo", "variants") not in rows

@@ -30,9 +30,10 @@ precision=bf16"), with seeds as the samples and the verdict rule of `stats.claim
 eval/<set>.json for is listed under "Missing". Policies are compared at one point of training: where a model's seeds
 were evaluated at different env steps (the checkpoint of eval/<set>.json), the claim takes the evaluations at the
 steps both models have most seeds at (`stats.common_eval_steps`) and names the others under "Missing"; the
-per-robot differences take the same evaluations (the returns table and its bars pool every step, and say so). The training claims are also tested on the learning curves (set
-"training", `TRAINING_CLAIMS`: each seed's last ~5% of iterations in metrics.csv, runs at the furthest env steps;
-where some runs stopped short, also set "training_all": every run, at the env steps all of them reached).
+per-robot differences take the same evaluations (the returns table and its bars pool every step, and say so). The
+training claims are also tested on the learning curves (set "training", `TRAINING_CLAIMS`: each seed's last ~5% of
+iterations in metrics.csv, runs at the furthest env steps; where some runs stopped short, also set "training_all":
+every run, at the env steps all of them reached).
 
 The report is the sections of `SECTIONS`, in order: each is a function (document, context) that adds figures
 (under its heading), tables and missing items to the `document.Document`; `build_report` reads the runs, makes the
@@ -458,9 +459,8 @@ def _claims(doc: Document, ctx: ReportContext) -> None:
         m = f"{100 * CLAIM_MARGIN:g}%"
         doc.table("Claims", "claims",
                   ["task", "model", "baseline", "claim", "kind", "set", "env_steps", "model_seeds", "baseline_seeds",
-                   "model_mean",
-                   "baseline_mean", "difference", "ci95_low", "ci95_high", "margin", "relative_difference_pct",
-                   "verdict", "p_one_sided", "seeds_for_power"], rows,
+                   "model_mean", "baseline_mean", "difference", "ci95_low", "ci95_high", "margin",
+                   "relative_difference_pct", "verdict", "p_one_sided", "seeds_for_power"], rows,
                   ["task", "claim", "set", "seeds (model/baseline)", "model mean", "baseline mean",
                    "difference [95% CI]", "relative difference", "verdict", "p (one-sided)",
                    f"seeds per side for {100 * CLAIM_POWER:g}% power"], md,
