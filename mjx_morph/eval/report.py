@@ -494,8 +494,7 @@ def _eval_claim_sides(doc: Document, task: str, main: dict[str, list[Run]], c: C
         return (c, c.set, seed_set_means(runs[c.model], c.set), seed_set_means(runs[c.baseline], c.set), math.nan,
                 why)
     steps, ra, rb = at
-    left = [r for a, kept in ((c.model, ra), (c.baseline, rb)) for r in runs[a]
-            if c.set in r.evals and all(r is not k for k in kept)]
+    left = [r for rs in runs.values() for r in rs if c.set in r.evals and r.eval_steps(c.set) != steps]
     if left:
         doc.missing.append(f"{task}: {c.text} compares the {c.set} evaluations at {fmt_steps(steps or math.nan)} env "
                            "steps; left out, evaluated at other steps: "
