@@ -20,6 +20,7 @@ import pytest
 
 from mjx_morph.layout import NUM_TOKENS, STATE_FEATURES, Obs, Robots
 from mjx_morph.nets import ARCHS, NetConfig, distribution, make_model
+from mjx_morph.nets.network import take
 from mjx_morph.nets.recurrent import GRUCell, LSTMCell
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -490,6 +491,69 @@ def test_context_mlp_gives_the_context(arch):
         assert_close(mu_a, mu_b)
         assert not np.allclose(np.asarray(mu_a), np.asarray(mu_c), atol=1e-3)
 
+
+
+def test_scale_context_multiplies_the_context_mlp_output_by_sqrt_d():
+    """scale_context=True with context-MLP output weights W equals scale_context=False with sqrt(D) W (the last
+    layer's kernel and bias; D = 16 here, so 4): the same outputs and states. And it needs context_mlp."""
+    flags = {"context_mlp": True, "scale_after_cell": True}
+    model, robots, params, step, _ = flag_setup("rmemo", flags)
+    _, _, _, step_scaled, _ = flag_setup("rmemo", {**flags, "scale_context": True})
+
+    def times4(p):
+        last = p["ctx_mlp"]["layers_1"]
+        return {**p, "ctx_mlp": {**p["ctx_mlp"], "layers_1": jax.tree.map(lambda x: 4.0 * x, last)}}
+    obs = make_obs(19, (B,))
+    carry = random_carry(model, 19)
+    resets = jnp.zeros(B, bool)
+    mu_s, v_s, c_s = step_scaled(params, robots, obs, carry, resets)
+    mu_w, v_w, c_w = step({n: times4(p) for n, p in params.items()}, robots, obs, carry, resets)
+    mu, _, _ = step(params, robots, obs, carry, resets)
+    assert_close(mu_s, mu_w)
+    assert_close(v_s, v_w)
+    assert_tree_close(c_s, c_w)
+    assert not np.allclose(np.asarray(mu_s), np.asarray(mu), atol=1e-3)
+    with pytest.raises(ValueError, match="scale_context=True .* needs context_mlp=True"):
+        make_model("rmemo", hfield=False, scale_context=True)
+
+
+def test_rmemo_transformer_input_at_init_against_metamorph():
+    """At full width (D = 128) and the PyTorch initialisation, on normalised inputs (all 52 proprio features
+    N(0, 1), context in [-1, 1], as the learner's normaliser and ModuMorph's bounds give them), the transformer's
+    input at the first step: MetaMorph's (sqrt(D) times the embedding of the 52 features, 35 of them the context)
+    has rms 4.8; R-MeMo's with its defaults (sqrt(D) times the cell output, plus the context MLP's output) is ten
+    times smaller, and the context's part of it is a third of the cell's (rms 0.14 against 0.48). scale_context=True
+    puts the context MLP's output under sqrt(D) (rms 1.6): the context then outweighs the cell output, as it does
+    in MetaMorph's embedding."""
+    robots = make_robots(0)
+    obs = make_obs(20, (64,))._replace(hfield=None)
+    obs = obs._replace(prev_action=jnp.clip(obs.prev_action, -1.0, 1.0))
+    kw = dict(hfield=False, decoder_dims=[], d_model=128, num_layers=1, ffn_dim=32)
+
+    def rms(x, mask):
+        return float(np.sqrt(np.mean(np.square(np.asarray(x)[np.asarray(mask)]))))
+
+    meta = make_model("metamorph", **kw)
+    params = meta.init(jax.random.key(20), robots, obs)
+    parts = meta._parts(robots, obs, None)
+    node = parts["node_mask"]
+    e = meta.nets["actor"].apply({"params": params["actor"]}, parts, {}, method="pre")["e"]
+    meta_rms = rms(e, node)
+    scales = {}
+    for scaled in (False, True):
+        model = make_model("rmemo", context_mlp=True, scale_after_cell=True, scale_context=scaled, **kw)
+        params = model.init(jax.random.key(20), robots, obs)
+        net, p = model.nets["actor"], {"params": params["actor"]}
+        cache = model.robot_cache(params, robots)["actor"]
+        parts = model._parts(robots, obs, None)
+        pre = net.apply(p, parts, cache, method="pre")
+        _, h = net.apply(p, model.initial_carry(64)["actor"], pre["xg"], node, method="recur")
+        ctx = take(cache["ctx"], parts["robot"]) * (np.sqrt(128) if scaled else 1.0)
+        scales[scaled] = (rms(np.sqrt(128) * h, node), rms(ctx, node))
+    (cell, ctx), (_, ctx_scaled) = scales[False], scales[True]
+    assert meta_rms > 2.0 and cell + ctx < meta_rms / 3, (meta_rms, scales)
+    assert ctx < 0.5 * cell, scales
+    assert ctx_scaled > 2.0 * cell, scales
 
 def test_flat_terrain_model_runs_without_height_map():
     model, robots, params, step, _ = setup("rmomo", hfield=False)

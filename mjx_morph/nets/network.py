@@ -65,6 +65,7 @@ class NetConfig:
     embed_input: str = "obs"         # input of the per-limb embedding, a key of EMBED_INPUT_DIMS
     plus_mlp: bool = False           # *_plus: two extra per-limb Linear layers (D -> plus_hidden -> D) before the transformer
     context_mlp: bool = False        # R-MeMo paper-text option: MLP(context) added to the cell output
+    scale_context: bool = False      # sqrt(D) multiplies the context MLP's output too (as it does the cell output)
     cell_residual: bool = False      # transformer input = embedding + cell output (default: cell output alone)
     scale_after_cell: bool = False   # apply sqrt(D) after the cell (default: to the embedding, before the cell)
     embed_scale: bool = True         # MetaMorph's EMBEDDING_SCALE: multiply the embedding by sqrt(D)
@@ -243,7 +244,8 @@ class PolicyNet(nn.Module):
         if c.plus_mlp:
             x = self.plus(x)
         if c.context_mlp:
-            x = x + take(cache["ctx"], idx)
+            ctx = take(cache["ctx"], idx)
+            x = x + (ctx * self._scale() if c.scale_context else ctx)
         (x,) = cast(c.dtype, x)                                    # the transformer's residual stream
 
         if c.base == "modu":

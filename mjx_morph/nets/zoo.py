@@ -25,6 +25,11 @@ Design choices where the original papers and code leave a gap, all overridable b
   +45% training return for R-MoMo, +60% for R-MeMo with its context MLP, 2 seeds each over the first 20 M steps on
   ft), and runs of rmemo `context_mlp=True` (measured, below; the flag's default here stays design A, the paper's
   count).
+- R-MeMo's context MLP output is added after sqrt(D) (`scale_context=False`), unscaled, as the paper's text adds
+  it to the LSTM output. At init R-MeMo's transformer input is then ten times smaller than MetaMorph's, and the
+  context is a third of it (tests/test_nets.py, test_rmemo_transformer_input_at_init_against_metamorph);
+  `scale_context=True` scales the context MLP's output too. Not yet measured (study ab_rmemo_scale_context): R-MeMo
+  trained 39% below MetaMorph over the first 18 M steps on ft (2 seeds each, session 26).
 - The previous action is clipped to [-1, 1] (the executed control), masked and zeroed at resets (model.py).
 - The plus-variants put their two layers where the recurrent cell sits (per limb, between embedding and
   transformer, output replacing the embedding, ReLU between the layers only), so that "recurrent cell vs
@@ -100,6 +105,7 @@ class ModelOptions:
     embed_input: Optional[str] = None       # obs | obs_action | state_action
     embed_scale: Optional[bool] = None
     context_mlp: Optional[bool] = None      # R-MeMo: the paper text's MLP(context) added to the cell output
+    scale_context: Optional[bool] = None    # R-MeMo: sqrt(D) multiplies the context MLP's output too
     cell_residual: Optional[bool] = None    # transformer input = embedding + cell output
     scale_after_cell: Optional[bool] = None  # sqrt(D) after the cell instead of before it
     action_std: Optional[float] = None
@@ -121,7 +127,7 @@ def _allowed(arch: str) -> set[str]:
         if s.get("cell_site", "base") == "base":
             keys |= {"cell_residual", "scale_after_cell", "embed_input"}
     if s["base"] == "meta":
-        keys |= {"context_mlp", "attention"}
+        keys |= {"context_mlp", "scale_context", "attention"}
     if not s.get("cell"):
         keys.add("embed_input")
     return keys
@@ -135,7 +141,7 @@ def make_model(arch: str, *, hfield: bool, decoder_dims: Sequence[int] = (), pre
     layers ([] for ft/incline, [64] csr, [64, 64] obstacle); precision: fp32 | tf32 | bf16 (precision.py).
     `overrides`: sizes (d_model, num_layers,
     num_heads, ffn_dim, hidden (= d_model), plus_hidden, hfield_dims, hfield_size) and flags (context_mlp,
-    cell_residual, scale_after_cell, embed_input, embed_scale, action_std, clip_prev_action,
+    scale_context, cell_residual, scale_after_cell, embed_input, embed_scale, action_std, clip_prev_action,
     clone_layer_init, scan_unroll, attention), each only where it applies; anything else is an error."""
     if arch not in _STRUCTURE:
         raise ValueError(f"unknown architecture {arch!r}; known: {', '.join(ARCHS)}")
@@ -153,6 +159,8 @@ def make_model(arch: str, *, hfield: bool, decoder_dims: Sequence[int] = (), pre
         raise ValueError(f"{arch}: attention={ov['attention']!r}; expected one of {', '.join(ATTENTION)}")
     if "embed_input" in ov and ov["embed_input"] not in EMBED_INPUT_DIMS:
         raise ValueError(f"{arch}: embed_input must be one of {sorted(EMBED_INPUT_DIMS)}")
+    if ov.get("scale_context") and not ov.get("context_mlp"):
+        raise ValueError(f"{arch}: scale_context=True scales the context MLP's output, so it needs context_mlp=True")
     if "hfield_dims" in ov:
         ov["hfield_dims"] = tuple(int(x) for x in ov["hfield_dims"])
     net = NetConfig(**{**_STRUCTURE[arch], **ov}, hfield=bool(hfield), decoder_dims=tuple(int(x) for x in decoder_dims),
