@@ -71,8 +71,10 @@ MIN_TRAIN_MIN = 1.0     # with time_limit_min: do not start (compile) a training
 #: 63-75 s on both (sessions 19-20), 10-12 s of it the pair search that `device_job.sh prepare` now keeps in
 #: .gpu/pairs; the variants (2400): env built in 77-79 s on an H100 host (29-30 s of it the search; ~25 s without it,
 #: `put_model` spread over the cores: estimated), then 2 sweeps of 4800 envs x 1000 steps, the first with compilation
-#: in 154 s (31 k env steps/s), the second ~100 s (estimated: it was cut by the call's end)
-EVAL_MINUTES = {"train": 2.5, "val": 1.75, "test": 1.25, "variants": 5.0}
+#: in 154 s (31 k env steps/s), the second ~100 s (estimated: it was cut by the call's end). Session 26 (four runs on
+#: one host, a run that finished its training too soon to prepare): R-MeMo's test70 with the zero-state sweep (560
+#: episodes) 90 s, the variants 325 s (env built in 67 s)
+EVAL_MINUTES = {"train": 2.5, "val": 1.75, "test": 1.5, "variants": 5.5}
 EVAL_SET_MIN = 2.5      # ... and of any other set (the largest of the ~100-robot sets)
 #: ... and when its env and sweep were prepared while the run trained (PrepareEvaluation). Measured (session 22, one run
 #: per H100 of 4): the variants 196-199 s, test70 27 s after them; plus loading the checkpoint for a run's first set
