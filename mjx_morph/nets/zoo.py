@@ -28,7 +28,8 @@ Design choices where the original papers and code leave a gap, all overridable b
 - R-MeMo's context MLP output is added after sqrt(D) (`scale_context=False`), unscaled, as the paper's text adds
   it to the LSTM output. At init R-MeMo's transformer input is then ten times smaller than MetaMorph's, and the
   context is a third of it (tests/test_nets.py, test_rmemo_transformer_input_at_init_against_metamorph);
-  `scale_context=True` scales the context MLP's output too. Not yet measured (study ab_rmemo_scale_context): R-MeMo
+  `scale_context=True` scales the context MLP's output too; `embed_input="obs_action"` with `context_mlp=False`
+  lets the cell read all 52 features, as R-MoMo's does. Neither measured yet (study ab_rmemo_context_path): R-MeMo
   trained 39% below MetaMorph over the first 18 M steps on ft (2 seeds each, session 26).
 - The previous action is clipped to [-1, 1] (the executed control), masked and zeroed at resets (model.py).
 - The plus-variants put their two layers where the recurrent cell sits (per limb, between embedding and
