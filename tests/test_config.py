@@ -401,7 +401,7 @@ def test_every_study_files_runs_compose_and_build_their_models():
     assert {"paper", "ab_rmemo_context_path"} <= {f.stem for f in files}
     seen = set()
     for f in files:
-        runs = study.plan(study.StudyConfig(name=f.stem, seeds=[0], out="runs/studies"))
+        runs = study.plan(study.StudyConfig(name=f.stem, seeds=[0]))
         assert runs, f
         for r in runs:
             over = tuple(o for o in r.overrides if not o.startswith(("run_dir=", "seed=")))

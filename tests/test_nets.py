@@ -492,7 +492,6 @@ def test_context_mlp_gives_the_context(arch):
         assert not np.allclose(np.asarray(mu_a), np.asarray(mu_c), atol=1e-3)
 
 
-
 def test_scale_context_multiplies_the_context_mlp_output_by_sqrt_d():
     """scale_context=True with context-MLP output weights W equals scale_context=False with sqrt(D) W (the last
     layer's kernel and bias; D = 16 here, so 4): the same outputs and states. And it needs context_mlp."""
@@ -539,21 +538,19 @@ def test_rmemo_transformer_input_at_init_against_metamorph():
     node = parts["node_mask"]
     e = meta.nets["actor"].apply({"params": params["actor"]}, parts, {}, method="pre")["e"]
     meta_rms = rms(e, node)
-    scales = {}
-    for scaled in (False, True):
-        model = make_model("rmemo", context_mlp=True, scale_after_cell=True, scale_context=scaled, **kw)
-        params = model.init(jax.random.key(20), robots, obs)
-        net, p = model.nets["actor"], {"params": params["actor"]}
-        cache = model.robot_cache(params, robots)["actor"]
-        parts = model._parts(robots, obs, None)
-        pre = net.apply(p, parts, cache, method="pre")
-        _, h = net.apply(p, model.initial_carry(64)["actor"], pre["xg"], node, method="recur")
-        ctx = take(cache["ctx"], parts["robot"]) * (np.sqrt(128) if scaled else 1.0)
-        scales[scaled] = (rms(np.sqrt(128) * h, node), rms(ctx, node))
-    (cell, ctx), (_, ctx_scaled) = scales[False], scales[True]
-    assert meta_rms > 2.0 and cell + ctx < meta_rms / 3, (meta_rms, scales)
+    model = make_model("rmemo", context_mlp=True, scale_after_cell=True, **kw)
+    params = model.init(jax.random.key(20), robots, obs)
+    net, p = model.nets["actor"], {"params": params["actor"]}
+    cache = model.robot_cache(params, robots)["actor"]
+    parts = model._parts(robots, obs, None)
+    pre = net.apply(p, parts, cache, method="pre")
+    _, h = net.apply(p, model.initial_carry(64)["actor"], pre["xg"], node, method="recur")
+    cell, ctx = rms(np.sqrt(128) * h, node), rms(take(cache["ctx"], parts["robot"]), node)
+    scales = dict(meta=meta_rms, cell=cell, ctx=ctx)
+    assert meta_rms > 2.0 and cell + ctx < meta_rms / 3, scales
     assert ctx < 0.5 * cell, scales
-    assert ctx_scaled > 2.0 * cell, scales
+    assert np.sqrt(128) * ctx > 2.0 * cell, scales                     # with scale_context=True
+
 
 def test_flat_terrain_model_runs_without_height_map():
     model, robots, params, step, _ = setup("rmomo", hfield=False)

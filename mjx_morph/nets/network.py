@@ -166,7 +166,8 @@ class PolicyNet(nn.Module):
         cache = {}
         if c.base == "meta":
             if c.context_mlp:
-                cache["ctx"] = self.ctx_mlp(context)
+                ctx = self.ctx_mlp(context)
+                cache["ctx"] = ctx * self._scale() if c.scale_context else ctx
             return cache
         r = context.shape[0]
         c_fa = self.fa_encoder(context)
@@ -244,8 +245,7 @@ class PolicyNet(nn.Module):
         if c.plus_mlp:
             x = self.plus(x)
         if c.context_mlp:
-            ctx = take(cache["ctx"], idx)
-            x = x + (ctx * self._scale() if c.scale_context else ctx)
+            x = x + take(cache["ctx"], idx)
         (x,) = cast(c.dtype, x)                                    # the transformer's residual stream
 
         if c.base == "modu":
