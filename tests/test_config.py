@@ -354,9 +354,10 @@ def test_last_iteration_and_evaluated(tmp_path):
 
 
 def test_recommended_model_options_are_filled_and_recorded(tmp_path):
-    """R-MoMo's and R-MeMo's measured scale_after_cell=True (and R-MeMo's context_mlp=True) is filled in at composition
-    (recorded explicitly in config.yaml) unless the run names the key; a run directory saved with null (the
-    spec's reading) refuses the new default with a hint, and resumes with model.scale_after_cell=null."""
+    """R-MoMo's and R-MeMo's measured scale_after_cell=True (and R-MeMo's context_mlp=True, scale_context=True) is
+    filled in at composition (recorded explicitly in config.yaml) unless the run names the key, or, for scale_context,
+    the context MLP is off; a run directory saved with null (the spec's reading) or without the key refuses the new
+    default with a hint, and resumes with model.<key>=null."""
     from mjx_morph.run import RunDir, RunDirError
     from mjx_morph.run.config import FREE, IDENTITY
     assert compose_run_config(["arch=rmomo"]).model.scale_after_cell is True
@@ -376,6 +377,20 @@ def test_recommended_model_options_are_filled_and_recorded(tmp_path):
                                           r"model.scale_after_cell=null"):
         RunDir(tmp_path, to_dict(new), IDENTITY, FREE)
     RunDir(tmp_path, to_dict(old), IDENTITY, FREE)          # the same null: resumes
+    # R-MeMo's measured scale_context=True; not where its prerequisite, the context MLP, is off (design A)
+    assert compose_run_config(["arch=rmemo"]).model.scale_context is True
+    design_a = compose_run_config(["arch=rmemo", "model.context_mlp=false"])
+    assert design_a.model.scale_context is None and design_a.model.scale_after_cell is True
+    assert compose_run_config(["arch=rmemo", "model.scale_context=false"]).model.scale_context is False
+    # a run directory from before the key (config.yaml without it) gets the same hint
+    saved = to_dict(compose_run_config(["arch=rmemo", "model.scale_context=null", f"run_dir={tmp_path}"]))
+    del saved["model"]["scale_context"]
+    (tmp_path / "config.yaml").write_text(yaml.safe_dump(saved, sort_keys=False))
+    with pytest.raises(RunDirError, match=r"model.scale_context: saved None, now True \(saved without the key: pass "
+                                          r"model.scale_context=null"):
+        RunDir(tmp_path, to_dict(compose_run_config(["arch=rmemo", f"run_dir={tmp_path}"])), IDENTITY, FREE)
+    RunDir(tmp_path, to_dict(compose_run_config(["arch=rmemo", "model.scale_context=null", f"run_dir={tmp_path}"])),
+           IDENTITY, FREE)
 
 
 def test_paper_study_runs_the_four_models_with_three_seeds(capsys, unimals):

@@ -760,7 +760,7 @@ def test_params_cli():
     assert "5232774" in " ".join(lines["modumorph"]) and "5563526" in " ".join(lines["rmomo"])
     # a run of rmemo gets the measured context MLP and scale placement (nets.zoo.RECOMMENDED): the note gives the
     # count a run has (the scale adds no parameter)
-    assert "context_mlp=True, scale_after_cell=True: 3610499, +42240" in " ".join(lines["rmemo"])
+    assert "context_mlp=True, scale_after_cell=True, scale_context=True: 3610499, +42240" in " ".join(lines["rmemo"])
     assert "a run" not in " ".join(lines["metamorph"])
     bad = subprocess.run([sys.executable, "-m", "experiments.params", "env=ft", "no_such_key=1"], cwd=ROOT,
                          capture_output=True, text=True, timeout=300)

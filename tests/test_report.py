@@ -475,7 +475,8 @@ def test_classify_main_size_context():
 
 def test_variants_of_an_architecture_are_reported_apart(tmp_path):
     """The arms of an A/B study (same task and arch, different training keys) are separate groups named by the keys
-    that differ; seeds of one arm pool; keys a run's config lacks (an older run) and seeds do not make variants."""
+    that differ; seeds of one arm pool and do not make variants; a key a run's config lacks (an older run) counts at
+    today's default (an old run without `precision` ran fp32, so a bf16 run stands apart from it)."""
     def run(seed, model=None, precision=None, extra=None):
         cfg = {"env": {"task": "ft"}, "arch": "rmomo", "seed": seed, "model": {"scale_after_cell": model,
                                                                                "d_model": 128}}
@@ -485,7 +486,8 @@ def test_variants_of_an_architecture_are_reported_apart(tmp_path):
         return Run(Path(f"r{seed}"), cfg)
     runs = [run(0), run(1), run(0, True), run(1, True), run(0, True, "bf16"), run(0, extra={"arch": "modumorph"})]
     name_variants(runs)
-    assert [r.name for r in runs] == ["rmomo, scale_after_cell=null"] * 2 + ["rmomo, scale_after_cell=true"] * 3 \
+    assert [r.name for r in runs] == ["rmomo, scale_after_cell=null, precision=fp32"] * 2 \
+        + ["rmomo, scale_after_cell=true, precision=fp32"] * 2 + ["rmomo, scale_after_cell=true, precision=bf16"] \
         + ["modumorph"]
     same = [run(0, True, "bf16"), run(1, True, "tf32")]
     name_variants(same)

@@ -273,6 +273,12 @@ VARIANT_KEYS = ("model", "ppo", "precision", "env")
 NOT_VARIANT_KEYS = ("env.task", "env.context_features")
 
 
+def _config_defaults() -> dict:
+    """Today's RunConfig defaults, flattened ("model.scale_context": None, "precision": "fp32", ...)."""
+    from ..run.config import RunConfig, to_dict      # hydra and the model zoo: loaded only when names are given
+    return flatten_config(to_dict(RunConfig()))
+
+
 def _value(v) -> str:
     if v is None:
         return "null"          # a model option left to make_model's own reading (config.yaml's value, verbatim)
@@ -282,14 +288,20 @@ def _value(v) -> str:
 def name_variants(runs: Sequence[Run]) -> None:
     """Set each run's `variant`: the training keys (VARIANT_KEYS) whose values differ among the runs of its task and
     architecture, as "key=value" with the key's last part (e.g. "scale_after_cell=true, precision=bf16"); "" when all
-    runs of the group agree. A key missing from some run's config (a run older than the key) is not compared."""
+    runs of the group agree. A key missing from some run's config (a run older than the key) counts at its default
+    in today's RunConfig, the value that keeps the behaviour the run had (so a run from before `model.scale_context`
+    stands apart from a run with it true); a key today's RunConfig lacks (since removed) is compared only where
+    every run of the group has it."""
     groups: dict[tuple[str, str], list[Run]] = {}
     for r in runs:
         groups.setdefault((r.task, r.arch), []).append(r)
     in_scope = lambda k: matches_key(k, VARIANT_KEYS) and not matches_key(k, NOT_VARIANT_KEYS)
+    defaults = _config_defaults()
     for rs in groups.values():
         flats = [flatten_config(r.cfg) for r in rs]
-        keys = sorted(k for k in set.intersection(*(set(f) for f in flats)) if in_scope(k)
-                      and len({repr(f[k]) for f in flats}) > 1)
+        shared = set.intersection(*(set(f) for f in flats))
+        flats = [{**{k: defaults[k] for k in defaults if k not in f}, **f} for f in flats]
+        keys = sorted(k for k in set.union(*(set(f) for f in flats)) if in_scope(k)
+                      and (k in shared or k in defaults) and len({repr(f.get(k)) for f in flats}) > 1)
         for r, f in zip(rs, flats):
             r.variant = ", ".join(f"{k.rsplit('.', 1)[-1]}={_value(f[k])}" for k in keys)

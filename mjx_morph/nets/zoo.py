@@ -23,14 +23,15 @@ Design choices where the original papers and code leave a gap, all overridable b
   cell is inserted after the embedding step exactly as the feed-forward model computes it. This is the flag's
   default here; runs of rmomo, grumomo and rmemo get `scale_after_cell=True` from `RECOMMENDED` (measured, below:
   +45% training return for R-MoMo, +60% for R-MeMo with its context MLP, 2 seeds each over the first 20 M steps on
-  ft), and runs of rmemo `context_mlp=True` (measured, below; the flag's default here stays design A, the paper's
-  count).
-- R-MeMo's context MLP output is added after sqrt(D) (`scale_context=False`), unscaled, as the paper's text adds
-  it to the LSTM output. At init R-MeMo's transformer input is then ten times smaller than MetaMorph's, and the
-  context is a third of it (tests/test_nets.py, test_rmemo_transformer_input_at_init_against_metamorph);
-  `scale_context=True` scales the context MLP's output too; `embed_input="obs_action"` with `context_mlp=False`
-  lets the cell read all 52 features, as R-MoMo's does. Neither measured yet (study ab_rmemo_context_path): R-MeMo
-  trained 39% below MetaMorph over the first 18 M steps on ft (2 seeds each, session 26).
+  ft), and runs of rmemo `context_mlp=True` and `scale_context=True` (measured, below; the flags' defaults here stay
+  design A, the paper's count).
+- R-MeMo's context MLP output is added to the cell output, as the paper's text says. The flag's default here adds it
+  unscaled, after sqrt(D) (`scale_context=False`): at init the transformer input is then ten times smaller than
+  MetaMorph's, and the context a third of it (tests/test_nets.py, test_rmemo_transformer_input_at_init_against_
+  metamorph), and R-MeMo trained 39% below MetaMorph over the first 18 M steps on ft (2 seeds each, session 26).
+  Runs of rmemo get `scale_context=True` from `RECOMMENDED` (sqrt(D) multiplies the context MLP's output too;
+  measured, below); `embed_input="obs_action"` with `context_mlp=False` (the cell reads all 52 features, as
+  R-MoMo's does) closed the gap as well, a little less (study ab_rmemo_context_path, docs/results.md).
 - The previous action is clipped to [-1, 1] (the executed control), masked and zeroed at resets (model.py).
 - The plus-variants put their two layers where the recurrent cell sits (per limb, between embedding and
   transformer, output replacing the embedding, ReLU between the layers only), so that "recurrent cell vs
@@ -50,7 +51,7 @@ Design choices where the original papers and code leave a gap, all overridable b
 from __future__ import annotations
 
 import dataclasses
-from typing import Any, List, Optional, Sequence
+from typing import Any, Iterable, List, Mapping, Optional, Sequence
 
 from . import precision as _precision
 from .layers import ATTENTION
@@ -80,11 +81,26 @@ _STRUCTURE: dict[str, dict[str, Any]] = {
 #: rmemo context_mlp=True: 2 seeds x 20 M steps on ft, training return 763 / 371 against 237 / 209 without the context
 #: MLP, both seeds above both from 8 M steps on (docs/results.md, "R-MeMo: with and without the context MLP"); design
 #: A's R-MeMo never sees the morphology. +42,240 parameters over the paper's table (3,610,499).
+#: rmemo scale_context=True: 2 seeds x 18 M steps on ft, training return 1337 / 1532 against 1016 / 542 with the context
+#: MLP's output unscaled, test70 1028 against 836, the variants (seed 1) 1801 against 943 (docs/results.md, "R-MeMo's
+#: context path"); the paper's text (the context MLP added to the cell output) with both under sqrt(D).
 RECOMMENDED: dict[str, dict[str, Any]] = {
     "rmomo": {"scale_after_cell": True},
     "grumomo": {"scale_after_cell": True},
-    "rmemo": {"context_mlp": True, "scale_after_cell": True},
+    "rmemo": {"context_mlp": True, "scale_after_cell": True, "scale_context": True},
 }
+#: a recommended option that means something only where another option is on: not filled in where that one is off
+#: (R-MeMo with `context_mlp=False`, design A, has no context MLP output to scale)
+_NEEDS: dict[str, str] = {"scale_context": "context_mlp"}
+
+
+def recommended(arch: str, options: Mapping[str, Any], named: Iterable[str] = ()) -> dict[str, Any]:
+    """The measured options (`RECOMMENDED`) that a run of `arch` with model `options` (None: unset) gets: those it
+    leaves unset and does not name in `named`, less any whose prerequisite (`_NEEDS`) ends up off."""
+    named = set(named)
+    fill = {k: v for k, v in RECOMMENDED.get(arch, {}).items() if options.get(k) is None and k not in named}
+    final = {**options, **fill}
+    return {k: v for k, v in fill.items() if k not in _NEEDS or final.get(_NEEDS[k])}
 
 _SIZES = ("d_model", "num_layers", "num_heads", "ffn_dim", "plus_hidden", "hfield_size", "hfield_dims")
 _MODEL_FLAGS = ("action_std", "clip_prev_action", "clone_layer_init", "scan_unroll")

@@ -32,7 +32,7 @@ from omegaconf.errors import OmegaConfBaseException
 
 from ..nets.precision import DEFAULT as DEFAULT_PRECISION
 from ..nets.precision import check as check_precision
-from ..nets.zoo import RECOMMENDED, ModelOptions
+from ..nets.zoo import ModelOptions, recommended
 from ..ppo.config import PPOConfig
 from ..sim.env import EnvConfig
 from ..sim.tasks import TASKS
@@ -185,9 +185,9 @@ def with_recommended(cfg: RunConfig, overrides: Iterable[str] = ()) -> RunConfig
     """`cfg` with the measured model options of its architecture (`nets.zoo.RECOMMENDED`) where the config leaves
     them unset (null) and no override names them: `model.scale_after_cell=null` keeps the spec's reading (what a
     run directory saved before the recommendation holds)."""
-    named = {o.lstrip("+~").split("=", 1)[0] for o in overrides}
-    fill = {k: v for k, v in RECOMMENDED.get(cfg.arch, {}).items()
-            if getattr(cfg.model, k) is None and f"model.{k}" not in named}
+    keys = (o.lstrip("+~").split("=", 1)[0] for o in overrides)
+    named = {k.removeprefix("model.") for k in keys if k.startswith("model.")}
+    fill = recommended(cfg.arch, dataclasses.asdict(cfg.model), named)
     return dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, **fill)) if fill else cfg
 
 

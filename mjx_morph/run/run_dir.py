@@ -125,8 +125,9 @@ class RunDir:
             if a.get(key) == b.get(key) or matches_key(key, free):
                 continue
             diff = f"{key}: saved {a.get(key)!r}, now {b.get(key)!r}"
-            if key in a and a[key] is None:      # e.g. a default recommended since the run began
-                diff += f" (saved null: pass {key}=null to resume with the meaning it had)"
+            if a.get(key) is None:               # e.g. a default recommended since the run began
+                diff += (f" (saved {'null' if key in a else 'without the key'}: pass {key}=null to resume with the "
+                         "meaning it had)")
             if matches_key(key, identity):
                 fixed.append(diff)
             elif matches_key(key, allowed):
