@@ -695,3 +695,15 @@ def test_eval_claims_compare_evaluations_at_the_same_env_steps(tmp_path):
     assert not (tmp_path / "out2" / "claims.csv").exists()          # no claim could be tested
     assert ("R-MoMo beats ModuMorph zero-shot on unseen topologies (test: evaluated at different env steps, rmomo "
             "20.1M, modumorph 18.0M)") in md
+
+
+def test_every_name_of_a_figure_gets_its_own_colour():
+    """An architecture keeps its colour in every figure; an A/B study's arms (names beyond nets.ARCHS) take colours no
+    name of the figure has (session 27's report drew MetaMorph and an R-MeMo arm in one blue)."""
+    from mjx_morph.nets import ARCHS
+    arms = [f"rmemo, scale_context={v}" for v in ("null", "true")] + [f"rmomo, arm{i}" for i in range(5)]
+    colors = plots.arch_colors(["metamorph", "modumorph"] + arms)
+    assert len(set(colors.values())) == len(colors)
+    alone = plots.arch_colors(["metamorph"])
+    assert colors["metamorph"] == alone["metamorph"] == plots.arch_colors(list(ARCHS))["metamorph"]
+    assert plots.arch_colors(list(reversed(arms))) == plots.arch_colors(arms)     # arms' colours: by sorted name

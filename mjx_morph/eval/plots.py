@@ -13,20 +13,29 @@ import numpy as np  # noqa: E402
 
 # ---- report figures (mjx_morph.eval.report) ------------------------------------------------------------------------
 def arch_colors(archs: Sequence[str]) -> dict[str, tuple]:
-    """A fixed colour per architecture (its place in mjx_morph.nets.ARCHS), the same in every figure."""
+    """A fixed colour per architecture (its place in mjx_morph.nets.ARCHS), the same in every figure; other names (an
+    A/B study's arms, "rmemo, scale_context=true") take, in sorted order, the colours no name of this figure has."""
     try:
         from ..nets import ARCHS
     except Exception:  # noqa: BLE001 - colours only
         ARCHS = ()
-    palette = plt.get_cmap("tab10").colors
-    out, extra = {}, len(ARCHS)
-    for a in archs:
-        if a in ARCHS:
-            i = ARCHS.index(a)
-        else:
-            i, extra = extra, extra + 1
-        out[a] = palette[i % len(palette)]
+    palette = list(plt.get_cmap("tab10").colors) + list(plt.get_cmap("Dark2").colors)
+    out = {a: palette[ARCHS.index(a)] for a in archs if a in ARCHS}
+    used = set(out.values())
+    free = [c for c in palette[len(ARCHS):] + palette[:len(ARCHS)] if c not in used]
+    for i, a in enumerate(sorted(a for a in archs if a not in out)):
+        out[a] = free[i % len(free)]
     return out
+
+
+def _legend(ax, fontsize: int) -> None:
+    """The axes' legend where it fits: inside ("best") for a few short names, else outside on the right, where it
+    covers no curve (an A/B study's long arm names)."""
+    labels = ax.get_legend_handles_labels()[1]
+    if len(labels) > 4 or max((len(x) for x in labels), default=0) > 32:
+        ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=fontsize, borderaxespad=0)
+    else:
+        ax.legend(loc="best", fontsize=fontsize)
 
 
 def _save(fig, out: str | Path, dpi: int = 110) -> Path:
@@ -76,7 +85,7 @@ def mean_curves(curves: Mapping[str, tuple], out: str | Path, title: str = "", x
     ax.set_ylabel(ylabel)
     ax.set_title(title)
     ax.grid(alpha=0.3)
-    ax.legend(loc="best", fontsize=9)
+    _legend(ax, 9)
     return _save(fig, out)
 
 
@@ -176,7 +185,6 @@ def reward_per_step(series: Mapping[str, tuple], out: str | Path, zero_steps: in
             a.axvline(zero_steps, color="0.3", ls=":", lw=1)
     ax.set_ylabel("mean reward per step")
     ax.grid(alpha=0.3)
-    ax.legend(loc="best", fontsize=8)
     ax.set_title(title)
     if alive:
         ax2 = axes[1][0]
@@ -187,6 +195,7 @@ def reward_per_step(series: Mapping[str, tuple], out: str | Path, zero_steps: in
         ax2.grid(alpha=0.3)
     axes[-1][0].set_xlabel("time step")
     fig.tight_layout()
+    _legend(ax, 8)                  # after the layout, so that a legend outside the axes does not squeeze them
     return _save(fig, out)
 
 
@@ -206,6 +215,6 @@ def errorbar_lines(series: Mapping[str, tuple], out: str | Path, title: str = ""
     ax.set_ylabel(ylabel)
     ax.set_title(title)
     ax.grid(alpha=0.3)
-    ax.legend(loc="best", fontsize=9)
     fig.tight_layout()
+    _legend(ax, 9)
     return _save(fig, out)
