@@ -157,6 +157,18 @@ def test_another_run_of_the_same_model_reuses_the_compiled_sweep(evaluated_runs,
     assert not any("building the env" in ln or "compilation" in ln for ln in log), log
     first = json.loads((evaluated_runs[1] / "eval" / "train.json").read_text())
     assert out["train"]["per_robot"] == first["per_robot"]
+
+    # evaluate_run prepares the next set (its env build and compilation) while the sweeps of the one before run
+    import dataclasses
+    unseen = resolve_set(run.config, "test")
+    unseen = dataclasses.replace(unseen, robots=unseen.robots[:1])
+    log.clear()
+    out = evaluate_run(d, ["train", unseen], seed=0, zero_state_steps=0, log=log.append, **kw)
+    assert out["train"]["per_robot"] == first["per_robot"] and out["test"]["robots"] == 1
+    at = lambda text: next(i for i, ln in enumerate(log) if text in ln)
+    assert at("test: building the env of 1 robots") < at("test: evaluation prepared while train's sweeps ran") \
+        < at("test: env and sweep prepared while train's sweeps ran") < at("[mjx_morph] test (gen/test")
+    assert not any("test:" in ln and "compilation included" in ln for ln in log), log
     # the summary names both seeds: the run's training seed and the evaluation episodes' seed
     saved = json.loads((d / "eval" / "train.json").read_text())
     assert (saved["train_seed"], saved["eval_seed"]) == (7, 0) and (first["train_seed"], first["eval_seed"]) == (0, 0)
@@ -229,7 +241,7 @@ def test_an_evaluation_prepared_while_training_builds_and_compiles_nothing_after
                                                                                    monkeypatch):
     """prepare_evaluation (the study runs it in a background thread in training's last minutes) builds the env and
     compiles the sweep; the evaluate_run after it waits for it, then does neither, and its results equal those of an
-    evaluation from scratch."""
+    evaluation from scratch. evaluate_run itself prepares each next set while the sets before it sweep."""
     import threading
     from collections import OrderedDict
     from mjx_morph.eval import evaluate as ev
@@ -247,11 +259,23 @@ def test_an_evaluation_prepared_while_training_builds_and_compiles_nothing_after
     out = evaluate_run(d, ["train"], seed=0, zero_state_steps=10, log=log.append, **kw)
     assert not thread.is_alive()
     assert prep[0].startswith("[mjx_morph] train: building the env of 2 robots") and "env built in" in prep[1]
-    assert prep[2].startswith("[mjx_morph] train: evaluation prepared while training")
+    assert prep[2].startswith("[mjx_morph] train: evaluation prepared while the run trained")
     assert "[mjx_morph] train: env and sweep prepared while the run trained" in log
     assert not any("building the env" in ln or "compilation" in ln for ln in log), log
     first = json.loads((evaluated_runs[1] / "eval" / "train.json").read_text())
     assert out["train"]["per_robot"] == first["per_robot"]
+
+    # evaluate_run prepares the next set (its env build and compilation) while the sweeps of the one before run
+    import dataclasses
+    unseen = resolve_set(run.config, "test")
+    unseen = dataclasses.replace(unseen, robots=unseen.robots[:1])
+    log.clear()
+    out = evaluate_run(d, ["train", unseen], seed=0, zero_state_steps=0, log=log.append, **kw)
+    assert out["train"]["per_robot"] == first["per_robot"] and out["test"]["robots"] == 1
+    at = lambda text: next(i for i, ln in enumerate(log) if text in ln)
+    assert at("test: building the env of 1 robots") < at("test: evaluation prepared while train's sweeps ran") \
+        < at("test: env and sweep prepared while train's sweeps ran") < at("[mjx_morph] test (gen/test")
+    assert not any("test:" in ln and "compilation included" in ln for ln in log), log
 
 
 def test_prepare_evaluation_starts_once_when_little_training_is_left(monkeypatch):

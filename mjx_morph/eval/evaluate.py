@@ -165,10 +165,21 @@ def evaluate_run(run_dir: str | Path, sets: Iterable[str | EvalSet] = ("train", 
     env_steps = step * trainer.cfg.steps_per_iter
     summaries = {}
     meter = _Meter(log)
-    for es in eval_sets:
+    ahead: threading.Thread | None = None
+    for i, es in enumerate(eval_sets):
         t0 = time.perf_counter()
         names = [m.name for m in es.robots]
+        if ahead is not None:
+            ahead.join()                                  # the set prepared while the last one ran
         sweeper = _sweeper_for(cfg, model, es, env_over, trace_steps, log)
+        # the next set's env build and compilation run on the host while this set's sweeps run on the device (a
+        # set not yet kept: session 27's variants built their env for ~60 s after test70's sweep)
+        ahead = None
+        if i + 1 < len(eval_sets) and not _kept(cfg, eval_sets[i + 1], env_over, trace_steps):
+            ahead = threading.Thread(target=_prepare_set, name="prepare-next-set", daemon=True,
+                                     args=(cfg, model, ts, eval_sets[i + 1], episodes, env_over, trace_steps,
+                                           max_envs, log, f"{es.tag}'s sweeps ran"))
+            ahead.start()
         robot_of = np.repeat(np.arange(len(names), dtype=np.int32), episodes)
         episode_of = np.tile(np.arange(episodes, dtype=np.int32), len(names))
         chunk = _chunk(len(robot_of), max_envs)
@@ -212,9 +223,7 @@ def _sweeper_for(cfg: RunConfig, model, es: EvalSet, env_over: dict, trace_steps
     """The sweeper of set `es` (its env and sweep program): one kept from an earlier evaluation or preparation in
     this process when the program would be the same (the same robots under another label, another seed of the same
     model), else a new one, its env built here."""
-    key = repr((to_dict(cfg.env), cfg.arch, to_dict(cfg.model), cfg.precision, cfg.fast_compile, cfg.robots_root,
-                cfg.allow_outside_design_space, tuple(m.name for m in es.robots), sorted(env_over.items()),
-                trace_steps))
+    key = _sweeper_key(cfg, es, env_over, trace_steps)
     with _SWEEPERS_LOCK:
         sweeper = _SWEEPERS.pop(key, None)
     if sweeper is None:
@@ -226,13 +235,26 @@ def _sweeper_for(cfg: RunConfig, model, es: EvalSet, env_over: dict, trace_steps
             + (f"; {pairs.line()}" if pairs is not None else ""))
         sweeper = Sweeper(env, model, trace_steps, compiler_options=FAST_COMPILE if cfg.fast_compile else None)
     elif sweeper.prepared:
-        log(f"[mjx_morph] {es.tag}: env and sweep prepared while the run trained")
-        sweeper.prepared = False
+        log(f"[mjx_morph] {es.tag}: env and sweep prepared while {sweeper.prepared}")
+        sweeper.prepared = ""
     with _SWEEPERS_LOCK:
         _SWEEPERS[key] = sweeper                          # the most recently used last
         while len(_SWEEPERS) > SWEEPERS_KEPT:
             _SWEEPERS.popitem(last=False)
     return sweeper
+
+
+def _sweeper_key(cfg: RunConfig, es: EvalSet, env_over: dict, trace_steps: int) -> str:
+    """What a set's sweep program depends on (`_SWEEPERS`' key)."""
+    return repr((to_dict(cfg.env), cfg.arch, to_dict(cfg.model), cfg.precision, cfg.fast_compile, cfg.robots_root,
+                 cfg.allow_outside_design_space, tuple(m.name for m in es.robots), sorted(env_over.items()),
+                 trace_steps))
+
+
+def _kept(cfg: RunConfig, es: EvalSet, env_over: dict, trace_steps: int) -> bool:
+    """Whether this process keeps a sweeper for set `es` (one evaluated or prepared before)."""
+    with _SWEEPERS_LOCK:
+        return _sweeper_key(cfg, es, env_over, trace_steps) in _SWEEPERS
 
 
 def _chunk(episodes: int, max_envs: int | None) -> int:
@@ -252,22 +274,36 @@ def prepare_evaluation(cfg: RunConfig, model, like, sets: Sequence[str], episode
     (`PrepareEvaluation`); the sweepers are kept for the evaluate_run of this process, which waits for the
     preparation to end. Errors are logged, never raised: evaluate_run then does the work itself. Returns the sets
     prepared."""
+    env_over = {"episode_length": int(episode_length)} if episode_length else {}
     done = []
     for name in sets:
         try:
-            t0 = time.perf_counter()
             es = resolve_set(cfg, name)
-            env_over = {"episode_length": int(episode_length)} if episode_length else {}
-            sweeper = _sweeper_for(cfg, model, es, env_over, trace_steps, log)
-            chunk = _chunk(len(es.robots) * episodes, None)
-            sweeper.precompile(like.params, like.obs_rms, chunk)
-            sweeper.prepared = True
-            done.append(name)
-            log(f"[mjx_morph] {es.tag}: evaluation prepared while training ({time.perf_counter() - t0:.0f} s)")
         except Exception as e:             # noqa: BLE001 - the training goes on; evaluate_run redoes this set
             log(f"[mjx_morph] {name}: preparing the evaluation failed ({type(e).__name__}: {e}); it is built when "
                 "the evaluation starts")
+            continue
+        if _prepare_set(cfg, model, like, es, episodes, env_over, trace_steps, None, log, "the run trained"):
+            done.append(name)
     return done
+
+
+def _prepare_set(cfg: RunConfig, model, like, es: EvalSet, episodes: int, env_over: dict, trace_steps: int,
+                 max_envs: int | None, log: Callable[[str], None], during: str) -> bool:
+    """Build set `es`'s env and compile its sweep for a train state shaped like `like`, and keep the sweeper for the
+    evaluation of this process (`_sweeper_for`); `during` says what ran meanwhile ("the run trained"), for the logs.
+    False, logged, on an error: the evaluation then builds the set itself."""
+    try:
+        t0 = time.perf_counter()
+        sweeper = _sweeper_for(cfg, model, es, env_over, trace_steps, log)
+        sweeper.precompile(like.params, like.obs_rms, _chunk(len(es.robots) * episodes, max_envs))
+        sweeper.prepared = during
+        log(f"[mjx_morph] {es.tag}: evaluation prepared while {during} ({time.perf_counter() - t0:.0f} s)")
+        return True
+    except Exception as e:                 # noqa: BLE001 - what runs meanwhile goes on
+        log(f"[mjx_morph] {es.tag}: preparing the evaluation failed ({type(e).__name__}: {e}); it is built when "
+            "the evaluation starts")
+        return False
 
 
 def wait_for_preparation(log: Callable[[str], None] = print) -> None:

@@ -70,7 +70,7 @@ class Sweeper:
         self._run = jax.jit(self._sweep, compiler_options=compiler_options)
         self._compiled: dict[int, jax.stages.Compiled] = {}    # chunk -> program compiled ahead (`precompile`)
         self._ran: set[int] = set()                             # chunk sizes called (compiled by the jit)
-        self.prepared = False       # set by whoever prepared it ahead of use (evaluate.prepare_evaluation)
+        self.prepared = ""          # what ran while it was prepared ahead of use ("the run trained"; evaluate.py)
 
     def precompile(self, params, obs_rms, chunk: int) -> None:
         """Compile the sweep of `chunk` episodes now, for parameters and normalisers shaped like `params` and
