@@ -27,10 +27,11 @@ ACCELERATOR = ["env=ft", "arch=rmomo", "robots=gen/train", "total_steps=2000000"
 UNSEEN_CPU = 8          # unseen robots evaluated on a CPU (all 100 of gen/test with an accelerator)
 
 
-def demo(extra: list[str], unseen: int | None = None, episode_length: int | None = None) -> Path:
+def demo(extra: list[str], unseen: int | None = None, episode_length: int | None = None, video: bool = True) -> Path:
     """Train, evaluate, report; returns the run directory. `extra`: overrides of the training config (a `preset=`
     among them replaces the demo's); `unseen`: how many unseen robots to evaluate (default: 8 on a CPU, all of
-    gen/test with an accelerator); `episode_length`: of the evaluation episodes (default: the run's)."""
+    gen/test with an accelerator); `episode_length`: of the evaluation episodes (default: the run's); `video`: render
+    one unseen robot's episode where OpenGL exists (the test leaves it to tests/test_render.py: ~35 s on 2 cores)."""
     cpu = jax.default_backend() == "cpu"
     base = CPU if cpu else ACCELERATOR
     if any(x.startswith("preset=") for x in extra):
@@ -42,7 +43,7 @@ def demo(extra: list[str], unseen: int | None = None, episode_length: int | None
     print(f"[demo] {jax.default_backend()} backend: {what}", flush=True)
     try:
         render.check_gl()
-        no_video = None
+        no_video = None if video else "not asked for (video=False)"
     except render.RenderUnavailable as e:
         no_video = str(e)
     t0 = time.perf_counter()
