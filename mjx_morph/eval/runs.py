@@ -300,8 +300,7 @@ def name_variants(runs: Sequence[Run]) -> None:
     for rs in groups.values():
         flats = [flatten_config(r.cfg) for r in rs]
         shared = set.intersection(*(set(f) for f in flats))
-        flats = [{**{k: defaults[k] for k in defaults if k not in f}, **f} for f in flats]
-        keys = sorted(k for k in set.union(*(set(f) for f in flats)) if in_scope(k)
-                      and (k in shared or k in defaults) and len({repr(f.get(k)) for f in flats}) > 1)
+        flats = [{**defaults, **f} for f in flats]
+        keys = sorted(k for k in shared | set(defaults) if in_scope(k) and len({repr(f[k]) for f in flats}) > 1)
         for r, f in zip(rs, flats):
             r.variant = ", ".join(f"{k.rsplit('.', 1)[-1]}={_value(f[k])}" for k in keys)
