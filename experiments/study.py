@@ -4,10 +4,12 @@
     python -m experiments.study context_features archs=[rmomo] dry_run=true          # list the runs only
     python -m experiments.study train_size archs=[rmomo] -- preset=smoke robots=gen/train   # extra run overrides
     python -m experiments.study paper archs=[rmomo,metamorph,rmemo] seeds=[2] seeds_of.rmomo=[6,7]   # other seeds
+    python -m experiments.study paper archs=[rmomo,metamorph] seeds=[4] stop_at_of.rmomo=245 -- stop_at=220
 
 A study file lists `runs` (name -> overrides of experiments.run), and optionally `common` (overrides of every run),
 `archs` and `seeds` (the defaults of archs= and seeds=; `seeds_of.<arch>=[...]` gives one architecture other
-seeds, so that one plan holds the runs each model still needs) and `evaluate` (the sets to evaluate each run on, in
+seeds, so that one plan holds the runs each model still needs, and `stop_at_of.<arch>=N` its own experiments.run
+stop_at, so that each model stops where the runs it pools with were evaluated) and `evaluate` (the sets to evaluate each run on, in
 order; `evaluate=[...]` for others, e.g. the zero-shot sets first: `evaluate=[test,variants]`).
 
 Run directories: <out>/<study>/<env>-<arch>-<run>-s<seed> (default out: runs/studies). Each run is an ordinary
@@ -113,6 +115,9 @@ class StudyConfig:
     seeds: Optional[List[int]] = None   # None: the study file's `seeds`, else [0]
     seeds_of: Dict[str, List[int]] = dataclasses.field(default_factory=dict)   # other seeds for some of the archs,
                                         # e.g. 'seeds_of.rmomo=[6,7]': one plan with the runs each model still needs
+    stop_at_of: Dict[str, int] = dataclasses.field(default_factory=dict)   # experiments.run's stop_at for some archs
+                                        # (over one given after --), e.g. stop_at_of.rmomo=245: each model stops
+                                        # where the runs it is compared with were evaluated
     env: EnvConfig = dataclasses.field(default_factory=EnvConfig)   # env=<task> and env.<option>=... for every run
     out: str = "runs/studies"
     episodes: int = 4                   # evaluation episodes per robot
@@ -160,21 +165,25 @@ def plan(c: StudyConfig) -> list[StudyRun]:
     common = list(spec.get("common", []))        # overrides of every run of the study (before each run's own)
     sets = c.evaluate if c.evaluate is not None else spec.get("evaluate", ["train", "test"])
     archs = list(c.archs if c.archs is not None else spec.get("archs", DEFAULT_ARCHS))
-    seeds_of = dict(c.seeds_of)
-    stray = [a for a in seeds_of if a not in archs]
-    if stray:
-        raise ValueError(f"seeds_of={seeds_of}: {', '.join(stray)} not among the study's architectures "
-                         f"({', '.join(archs)}); expected seeds for some of them")
+    seeds_of, stop_at_of = dict(c.seeds_of), dict(c.stop_at_of)
+    for key, given, what in (("seeds_of", seeds_of, "seeds"), ("stop_at_of", stop_at_of, "an iteration")):
+        stray = [a for a in given if a not in archs]
+        if stray:
+            raise ValueError(f"{key}={given}: {', '.join(stray)} not among the study's architectures "
+                             f"({', '.join(archs)}); expected {what} for some of them")
     seeds = c.seeds if c.seeds is not None else spec.get("seeds", [0])
     runs = []
     for arch in archs:
+        extra = list(c.run)
+        if arch in stop_at_of:
+            extra = [o for o in extra if o.split("=")[0] != "stop_at"] + [f"stop_at={stop_at_of[arch]}"]
         for name, overrides in spec["runs"].items():
             if c.only is not None and name not in c.only:
                 continue
             for seed in seeds_of.get(arch, seeds):
                 d = Path(c.out) / c.name / f"{c.env.task}-{arch}-{name}-s{seed}"
                 runs.append(StudyRun(d, [*env_over, f"arch={arch}", f"seed={seed}", f"run_dir={d}", *common,
-                                         *overrides, *c.run],
+                                         *overrides, *extra],
                                      list(sets), (arch, name), seed))
     return runs
 
@@ -396,8 +405,9 @@ def main(argv=None) -> int:
         i = argv.index("--")
         argv, extra = argv[:i], argv[i + 1:]
         argv.append("run=[" + ",".join(f"'{x}'" for x in extra) + "]")
-    # seeds_of.<arch>=[...] adds a key to a dict that starts empty: Hydra's `+` (the short form is what users type)
-    argv = [f"+{a}" if a.startswith("seeds_of.") else a for a in argv]
+    # seeds_of.<arch>=[...] and stop_at_of.<arch>=N add a key to a dict that starts empty: Hydra's `+` (the short
+    # form is what users type)
+    argv = [f"+{a}" if a.startswith(("seeds_of.", "stop_at_of.")) else a for a in argv]
     return cli.main(lambda c: run_study(c, argv), "run_study", StudyConfig, __doc__, argv, positional="name")
 
 

@@ -322,6 +322,20 @@ def test_study_seeds_of_gives_an_architecture_other_seeds(capsys, unimals):
     assert "modumorph not among the study's architectures (rmomo)" in capsys.readouterr().err
 
 
+def test_study_stop_at_of_gives_an_architecture_its_own_stop(capsys, unimals):
+    """stop_at_of.<arch>=N: that architecture's runs stop at N, over the stop_at given to every run after --, the
+    others keep it (one lease: R-MoMo to 20.1 M steps as its earlier seeds, MetaMorph to 18.0 M as its own)."""
+    from experiments import study
+    assert study.main(["paper", "archs=[rmomo,metamorph]", "seeds=[4]", "stop_at_of.rmomo=245", "dry_run=true",
+                       "--", "progress=false", "stop_at=220"]) == 0
+    runs = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("python -m experiments.run")]
+    stops = {ln.split("arch=")[1].split()[0]: [o for o in ln.split() if o.startswith("stop_at=")] for ln in runs}
+    assert stops == {"rmomo": ["stop_at=245"], "metamorph": ["stop_at=220"]}
+    assert all("progress=false" in ln for ln in runs)
+    assert study.main(["paper", "archs=[rmomo]", "stop_at_of.metamorph=220", "dry_run=true"]) == 2
+    assert "stop_at_of={'metamorph': 220}: metamorph not among" in capsys.readouterr().err
+
+
 def test_study_evaluate_overrides_the_study_files_sets(capsys, unimals):
     """evaluate=[...] replaces the study file's sets and their order (the zero-shot sets first under a time limit);
     a set the run's robots have not is refused before anything trains."""
