@@ -320,6 +320,26 @@ def test_claim_p_value_is_welchs_one_sided_and_agrees_with_the_verdict():
     assert claim_test([110.0, 110.0], [100.0, 100.0], "better").p_value == 0.0       # no spread: the difference known
 
 
+def test_claims_after_several_looks_use_bonferronis_bar():
+    """looks=k (the comparison looked at k times as seeds came in): the CI at 1 - 0.05 / k, reproduced exactly when
+    p < 0.025 / k; p itself does not change, the seeds planned for power grow; a bad k is refused."""
+    rng = np.random.default_rng(2)
+    seen = set()
+    for _ in range(300):
+        a, b = rng.normal(1150, 150, rng.integers(2, 9)), rng.normal(1000, 150, rng.integers(2, 9))
+        one, three = claim_test(a, b, "better"), claim_test(a, b, "better", looks=3)
+        assert three.p_value == one.p_value and three.level == pytest.approx(1 - 0.05 / 3) and one.level == 0.95
+        assert three.ci_low <= one.ci_low and three.ci_high >= one.ci_high
+        assert (three.p_value < 0.025 / 3) == (three.verdict == "reproduced"), (a, b)
+        if math.isfinite(one.seeds_for_power):
+            assert three.seeds_for_power >= one.seeds_for_power
+        seen.add((one.verdict, three.verdict))
+    assert ("reproduced", "inconclusive") in seen        # some claims hold at one look and not after three
+    for bad in (0, 1.5, -2):
+        with pytest.raises(ValueError, match="looks="):
+            claim_test([1.0, 2.0], [1.0, 2.0], "better", looks=bad)
+
+
 def _claim_rows(out: Path) -> dict:
     return {(r["task"], r["model"], r["set"]): r for r in _csv(out / "claims.csv")}
 
@@ -374,6 +394,14 @@ def test_claims_verdicts_on_clear_runs(tmp_path):
         assert r["verdict"] == ("reproduced" if c.model == "rmemo" else "not reproduced")
         assert float(r["difference"]) == pytest.approx(np.mean(a) - np.mean(b))
         assert float(r["margin"]) == pytest.approx(0.05 * np.mean(b))
+    # the fourth look at the same comparison: Bonferroni's CIs (wider, named in the table), p unchanged
+    md = build_report([tmp_path / "runs"], tmp_path / "out4", looks=4).read_text()
+    for key, r4 in _claim_rows(tmp_path / "out4").items():
+        assert float(r4["ci_level"]) == pytest.approx(0.9875) and float(rows[key]["ci_level"]) == 0.95
+        assert float(r4["ci95_low"]) < float(rows[key]["ci95_low"]) and r4["p_one_sided"] == rows[key]["p_one_sided"]
+    assert "difference [98.75% CI]" in md and "looked at 4 times" in md and "p < 0.025 / 4 = 0.00625" in md
+    with pytest.raises(ValueError, match="looks=0"):
+        build_report([tmp_path / "runs"], tmp_path / "out0", looks=0)
 
 
 def test_mean_curve_band():

@@ -59,9 +59,10 @@ from . import plots
 from .document import Document, fmt, fmt_steps, pm, write_csv
 from .params import param_count
 from .runs import CONTEXT_GROUPS, Run, classify, find_run_dirs, name_variants, read_run
-from .stats import (CLAIM_MARGIN, CLAIM_POWER, TASK_RANGES, Stat, change_stats, ci95, claim_test, common_eval_steps,
-                    eval_steps_of, furthest_mean_curve, mean_curve, normalised_or_nan, repeated_seeds,
-                    robot_difference, seed_average, seed_count, seed_set_means, seed_train_means, set_stat, stat_of)
+from .stats import (CLAIM_MARGIN, CLAIM_POWER, TASK_RANGES, Stat, change_stats, ci95, ci_level, claim_test,
+                    common_eval_steps, eval_steps_of, furthest_mean_curve, mean_curve, normalised_or_nan,
+                    repeated_seeds, robot_difference, seed_average, seed_count, seed_set_means, seed_train_means,
+                    set_stat, stat_of)
 
 SETS = ("train", "test", "val", "variants")
 TASK_ORDER = tuple(TASK_RANGES)
@@ -107,6 +108,7 @@ class ReportContext:
     tasks: list[str]                                  # the runs' tasks, in report order
     main: dict[str, dict[str, list[Run]]]             # task -> arch (in report order) -> its main runs (seeds)
     compare: tuple[str, ...]                          # the architectures to compare robot by robot
+    looks: int = 1                                    # how many times the claims' comparisons were looked at
     param_counts: dict[str, int] = field(default_factory=dict)   # param_count's memo, for this report only
 
 
@@ -436,10 +438,10 @@ def _claims(doc: Document, ctx: ReportContext) -> None:
                 untested.append(f"{c.text} ({set_name}: "
                                 + (why or f"{c.model} {len(a)}, {c.baseline} {len(b)} seeds") + ")")
                 continue
-            r = claim_test(a, b, c.kind)
+            r = claim_test(a, b, c.kind, looks=ctx.looks)
             rows.append([t, c.model, c.baseline, c.text, c.kind, set_name, at, r.model_seeds, r.baseline_seeds,
                          r.model_mean, r.baseline_mean, r.difference, r.ci_low, r.ci_high, r.margin, r.relative,
-                         r.verdict, r.p_value, r.seeds_for_power])
+                         r.verdict, r.p_value, r.seeds_for_power, r.level])
             point = "to" if set_name in (TRAINING, TRAINING_ALL) else "at"
             label = f"{set_name} {point} {at / 1e6:.1f} M steps" if math.isfinite(at) else set_name
             md.append([t, c.text, label, f"{r.model_seeds}/{r.baseline_seeds}", fmt(r.model_mean),
@@ -457,12 +459,17 @@ def _claims(doc: Document, ctx: ReportContext) -> None:
                                + (f" (A/B arms are not compared: {'; '.join(arms)})" if arms else ""))
     if rows:
         m = f"{100 * CLAIM_MARGIN:g}%"
+        level, bar = f"{100 * ci_level(ctx.looks):g}%", f"{0.025 / ctx.looks:.4g}"
+        looked = ("" if ctx.looks == 1 else
+                  f" The comparisons were looked at {ctx.looks} times as seeds came in (looks={ctx.looks}): the CIs "
+                  f"are at {level} and a claim is reproduced at p < 0.025 / {ctx.looks} = {bar} (Bonferroni), so that "
+                  "the looks together keep one look's 2.5% error rate.")
         doc.table("Claims", "claims",
                   ["task", "model", "baseline", "claim", "kind", "set", "env_steps", "model_seeds", "baseline_seeds",
                    "model_mean", "baseline_mean", "difference", "ci95_low", "ci95_high", "margin",
-                   "relative_difference_pct", "verdict", "p_one_sided", "seeds_for_power"], rows,
+                   "relative_difference_pct", "verdict", "p_one_sided", "seeds_for_power", "ci_level"], rows,
                   ["task", "claim", "set", "seeds (model/baseline)", "model mean", "baseline mean",
-                   "difference [95% CI]", "relative difference", "verdict", "p (one-sided)",
+                   f"difference [{level} CI]", "relative difference", "verdict", "p (one-sided)",
                    f"seeds per side for {100 * CLAIM_POWER:g}% power"], md,
                   note="per seed, the set's mean return over robots, of the evaluations at the env steps named (where "
                        "a model's seeds were evaluated at different steps, those at the steps both models have most "
@@ -473,12 +480,12 @@ def _claims(doc: Document, ctx: ReportContext) -> None:
                        f"margin m = {m} of the baseline's mean. 'beats': reproduced if the CI lies above 0, not "
                        "reproduced if below m; 'at least as well': reproduced if above −m, not reproduced if below "
                        "0; otherwise inconclusive. p: Welch's one-sided p-value against the claim's bound (0 or −m): "
-                       "reproduced exactly when p < 0.025; where the data were looked at k times as seeds came in, "
-                       "p < 0.025 / k keeps the claim (Bonferroni). Main runs of the groups named by the "
-                       "architecture alone (A/B arms are not compared). Seeds per side for "
+                       f"reproduced exactly when p < {bar}; where the data were looked at k times as seeds came in, "
+                       "p < 0.025 / k keeps the claim (Bonferroni: the report's looks=k). Main runs of the groups "
+                       "named by the architecture alone (A/B arms are not compared). Seeds per side for "
                        f"{100 * CLAIM_POWER:g}% power: how many seeds of each would reproduce the claim that often if "
                        "the observed difference and seed spreads held (normal approximation; – where the difference "
-                       "does not clear the claim's bound).")
+                       "does not clear the claim's bound)." + looked)
 
 
 def _eval_claim_sides(doc: Document, task: str, main: dict[str, list[Run]], c: Claim) -> tuple:
@@ -696,9 +703,11 @@ SECTIONS: tuple[tuple[str, Callable[[Document, ReportContext], None]], ...] = (
 
 
 def build_report(run_dirs: Sequence[str | Path], out: str | Path,
-                 compare: Sequence[str] = DEFAULT_COMPARE, title: str = "mjx_morph report") -> Path:
+                 compare: Sequence[str] = DEFAULT_COMPARE, title: str = "mjx_morph report", looks: int = 1) -> Path:
     """Read the runs, write figures, tables and `out/report.md`; returns the path of report.md. `run_dirs` may
-    name directories holding run directories (see runs.find_run_dirs)."""
+    name directories holding run directories (see runs.find_run_dirs). `looks`: how many times the claims'
+    comparisons were looked at as seeds came in (their CIs and verdicts corrected for it, `stats.claim_test`)."""
+    ci_level(looks)                     # a bad value fails before anything is read or written
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     doc = Document(out)
@@ -724,7 +733,7 @@ def build_report(run_dirs: Sequence[str | Path], out: str | Path,
     tasks = _order_tasks(r.task for r in runs)
     main = {t: {a: [r for r in runs if r.task == t and r.name == a and r.kind == "main"]
                 for a in _order_archs(r.name for r in runs if r.task == t and r.kind == "main")} for t in tasks}
-    ctx = ReportContext(runs, tasks, main, tuple(compare) if compare else DEFAULT_COMPARE)
+    ctx = ReportContext(runs, tasks, main, tuple(compare) if compare else DEFAULT_COMPARE, looks=int(looks))
     for heading, section in SECTIONS:
         doc.section(heading)
         section(doc, ctx)

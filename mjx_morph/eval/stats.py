@@ -5,6 +5,7 @@
     set_stat(runs, "test", "ft")     # Stat: mean and CI over robots of the seed-averaged per-robot returns
     grid, mean, lo, hi, n = mean_curve([(steps, returns), ...])
     claim_test(seed_set_means(model_runs, "test"), seed_set_means(baseline_runs, "test"), "better")
+    claim_test(..., "better", looks=2)   # the second look at data that grew by seeds: Bonferroni, p < 0.025 / 2
 
 Per-robot mean returns (the `per_robot` of eval/<tag>.json) are averaged over the seeds (runs) of a group that
 evaluated the robot (`seed_average`); means and 95% CIs are then taken over robots. Normalised returns use the
@@ -13,7 +14,9 @@ onto a common grid and averaged where all the curves reach (the mean ends with t
 
 Claims (`claim_test`) take seeds as the samples: each seed's mean return over the set's robots (`seed_set_means`;
 runs that share a seed are one sample), the difference of the means over seeds model - baseline with a 95% CI from
-Welch's t, and a verdict against a margin of `CLAIM_MARGIN` of the baseline's mean.
+Welch's t, and a verdict against a margin of `CLAIM_MARGIN` of the baseline's mean. Where the same comparison was
+looked at k times as seeds came in (`looks=k`), the CI is widened to 1 - 0.05 / k and a claim holds at p < 0.025 / k
+(Bonferroni), so that k looks together keep the 2.5% error rate of one.
 """
 from __future__ import annotations
 
@@ -218,16 +221,16 @@ def repeated_seeds(runs: Sequence[Run]) -> dict:
     return {seed: p for seed, p in paths.items() if len(p) > 1}
 
 
-def welch_ci95(a: Sequence[float], b: Sequence[float]) -> tuple[float, float]:
-    """95% CI (low, high) of mean(a) - mean(b) from Welch's t (scipy's `ttest_ind(equal_var=False)`); (nan, nan) with
-    fewer than 2 values on a side, the difference itself when neither side has any spread (scipy gives nan)."""
+def welch_ci(a: Sequence[float], b: Sequence[float], level: float = 0.95) -> tuple[float, float]:
+    """CI (low, high) at `level` of mean(a) - mean(b) from Welch's t (scipy's `ttest_ind(equal_var=False)`); (nan,
+    nan) with fewer than 2 values on a side, the difference itself when neither side has any spread (scipy gives nan)."""
     a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
     if a.size < 2 or b.size < 2:
         return float("nan"), float("nan")
     if a.var() + b.var() == 0:
         d = float(a.mean() - b.mean())
         return d, d
-    ci = stats.ttest_ind(a, b, equal_var=False).confidence_interval(0.95)
+    ci = stats.ttest_ind(a, b, equal_var=False).confidence_interval(level)
     return float(ci.low), float(ci.high)
 
 
@@ -237,8 +240,8 @@ class ClaimTest:
     (nan with fewer than 2 seeds on a side), the margin m (in return), the verdict, and the seeds per side that would
     reproduce the claim with probability CLAIM_POWER if the observed difference and seed spreads are the truth (nan
     where the difference does not clear the claim's bound, or with fewer than 2 seeds on a side), and `p_value`: the
-    one-sided Welch p of "the difference is at most the claim's bound" (reproduced exactly when p < 0.025; a reader
-    who looked at the data k times as seeds came in asks p < 0.025 / k, Bonferroni's correction)."""
+    one-sided Welch p of "the difference is at most the claim's bound" (reproduced exactly when p < 0.025 / looks:
+    the data looked at `looks` times as seeds came in, Bonferroni's correction; the CI is then at 1 - 0.05 / looks)."""
     model_seeds: int
     baseline_seeds: int
     model_mean: float
@@ -250,6 +253,12 @@ class ClaimTest:
     verdict: str
     seeds_for_power: float
     p_value: float = float("nan")
+    looks: int = 1
+
+    @property
+    def level(self) -> float:
+        """The CI's confidence level: 0.95 at one look."""
+        return ci_level(self.looks)
 
     @property
     def relative(self) -> float:
@@ -257,19 +266,28 @@ class ClaimTest:
         return 100 * self.difference / abs(self.baseline_mean) if self.baseline_mean else float("nan")
 
 
+def ci_level(looks: int) -> float:
+    """The confidence level of a claim's CI after `looks` looks at the data (Bonferroni): 1 - 0.05 / looks."""
+    if not (isinstance(looks, (int, np.integer)) and looks >= 1):
+        raise ValueError(f"looks={looks!r}: expected a whole number >= 1 (how many times the comparison was looked at)")
+    return 1 - 0.05 / int(looks)
+
+
 def claim_test(model: Sequence[float], baseline: Sequence[float], kind: str,
-               margin: float = CLAIM_MARGIN) -> ClaimTest:
+               margin: float = CLAIM_MARGIN, looks: int = 1) -> ClaimTest:
     """Whether the seeds' returns `model` support a claim against `baseline` (one number per seed, e.g.
     `seed_set_means`). kind "better": the model is better (delta = 0); "level": it does at least as well (delta = -m),
     with m = margin x |mean(baseline)|. With the 95% Welch CI [lo, hi] of mean(model) - mean(baseline): reproduced if
     lo > delta, else not reproduced if hi < delta + m (a gain surely below m; a loss surely there), else inconclusive;
-    "inconclusive (n < 2)" with fewer than 2 seeds on a side."""
+    "inconclusive (n < 2)" with fewer than 2 seeds on a side. `looks` > 1: the CI at 1 - 0.05 / looks (the
+    comparison looked at that many times as seeds came in; Bonferroni), so reproduced exactly when p < 0.025 / looks."""
     if kind not in ("better", "level"):
         raise ValueError(f"claim kind {kind!r}: not 'better' or 'level'")
     a, b = np.asarray(model, np.float64), np.asarray(baseline, np.float64)
     ma, mb = (float(x.mean()) if x.size else float("nan") for x in (a, b))
     m = margin * abs(mb)
-    lo, hi = welch_ci95(a, b)
+    level = ci_level(looks)
+    lo, hi = welch_ci(a, b, level)
     delta = 0.0 if kind == "better" else -m
     if a.size < 2 or b.size < 2:
         verdict = TOO_FEW_SEEDS
@@ -280,7 +298,7 @@ def claim_test(model: Sequence[float], baseline: Sequence[float], kind: str,
     else:
         verdict = INCONCLUSIVE
     return ClaimTest(int(a.size), int(b.size), ma, mb, ma - mb, lo, hi, m, verdict,
-                     seeds_for_power(a, b, ma - mb - delta), welch_p_above(a, b, delta))
+                     seeds_for_power(a, b, ma - mb - delta, level=level), welch_p_above(a, b, delta), int(looks))
 
 
 def welch_p_above(a: np.ndarray, b: np.ndarray, delta: float) -> float:
@@ -295,15 +313,16 @@ def welch_p_above(a: np.ndarray, b: np.ndarray, delta: float) -> float:
     return float(stats.ttest_ind(a, b + delta, equal_var=False, alternative="greater").pvalue)
 
 
-def seeds_for_power(a: np.ndarray, b: np.ndarray, effect: float, power: float = CLAIM_POWER) -> float:
-    """Seeds per side for which a two-sided 95% test of a difference `effect` (its distance from the bound the CI
-    must clear) succeeds with probability `power`, at the sides' seed standard deviations: n = (z_0.975 + z_power)^2
-    (s_a^2 + s_b^2) / effect^2, the normal approximation (Welch's t needs ~1-2 seeds more at n < 10), rounded up.
-    nan with fewer than 2 seeds on a side or an effect <= 0 (no number of seeds reproduces a claim the data point
-    against)."""
+def seeds_for_power(a: np.ndarray, b: np.ndarray, effect: float, power: float = CLAIM_POWER,
+                    level: float = 0.95) -> float:
+    """Seeds per side for which a two-sided test at `level` of a difference `effect` (its distance from the bound the
+    CI must clear) succeeds with probability `power`, at the sides' seed standard deviations:
+    n = (z_((1 + level) / 2) + z_power)^2 (s_a^2 + s_b^2) / effect^2, the normal approximation (Welch's t needs ~1-2
+    seeds more at n < 10), rounded up. nan with fewer than 2 seeds on a side or an effect <= 0 (no number of seeds
+    reproduces a claim the data point against)."""
     if a.size < 2 or b.size < 2 or not effect > 0:
         return float("nan")
-    z = stats.norm.ppf(0.975) + stats.norm.ppf(power)
+    z = stats.norm.ppf((1 + level) / 2) + stats.norm.ppf(power)
     return float(math.ceil(z ** 2 * (a.var(ddof=1) + b.var(ddof=1)) / effect ** 2))
 
 
