@@ -100,3 +100,36 @@ def test_xla_cache_packs_this_leases_programs_before_carried_ones(tmp_path):
     assert (packed, count) == (4, 5)
     with tarfile.open(tmp_path / "out.tar.gz") as tar:
         assert tar.getnames() == ["new-init", "new-update", "hit", "stale-new"]
+
+
+def test_xla_cache_packs_training_programs_before_the_others(tmp_path):
+    """The trainer's programs (jit__rollout, jit__update, ...: what a lease's first iteration waits for) go before the
+    others, also a carried one nobody read before this lease's sweeps; within each kind the order stays."""
+    import os
+    import sys
+    import tarfile
+    sys.path.insert(0, str(SCRIPT.parent))
+    try:
+        import xla_cache
+    finally:
+        sys.path.pop(0)
+    key = "0" * 64
+    earlier = tmp_path / "earlier"
+    earlier.mkdir()
+    for name in (f"jit__update-{key}-cache", f"jit__sweep-{key}-cache"):
+        (earlier / name).write_bytes(os.urandom(100_000))
+    xla_cache.pack(earlier, tmp_path / "carried.tar.gz")
+    cache = tmp_path / "xla"
+    xla_cache.unpack(tmp_path / "carried.tar.gz", cache)
+    new = {f"jit__rollout-{'1' * 64}-cache": 5000, f"jit__sweep-{'2' * 64}-cache": 4000,
+           f"jit__sweep-{'3' * 64}-cache": 6000}
+    for name, t in new.items():
+        (cache / name).write_bytes(os.urandom(100_000))
+        os.utime(cache / name, (t, t))
+    for name in (f"jit__update-{key}-cache", f"jit__sweep-{key}-cache"):     # carried, not read here
+        os.utime(cache / name, (1000, 1000))
+    packed, count, _ = xla_cache.pack(cache, tmp_path / "out.tar.gz", max_mb=350_000 / 2 ** 20)
+    assert (packed, count) == (3, 5)
+    with tarfile.open(tmp_path / "out.tar.gz") as tar:
+        assert [n.split("-")[0] + n.split("-")[1][:1] for n in tar.getnames()] == \
+            ["jit__rollout1", "jit__update0", "jit__sweep2"]

@@ -12,9 +12,9 @@
 #   installs the wheels, points the robots at .gpu/unimals_100, runs the command (XLA's W/I log lines dropped) with
 #   its output in $OUT/<name>.log, then packs the small artefacts of every run under runs/ (config, metrics.csv,
 #   eval/*.json; no checkpoints) into $OUT/<name>-runs.tar.gz: `tar xzf <it> -C results/` unpacks a study's runs
-#   here as results/<study>/<run>/. With DEVICE_JOB_SAVE_XLA=1 it also packs JAX's compilation cache (this lease's
-#   programs first, then those carried in that it read) into $OUT/xla-cache.tar.gz (at most 15 MiB); copied to .gpu/
-#   here, a fresh machine's first call starts from it (tools/xla_cache.py).
+#   here as results/<study>/<run>/. With DEVICE_JOB_SAVE_XLA=1 it also packs JAX's compilation cache (the training
+#   programs first; this lease's, then those carried in that it read) into $OUT/xla-cache.tar.gz (at most 15 MiB);
+#   copied to .gpu/ here, a fresh machine's first call starts from it (tools/xla_cache.py).
 # Example (three calls back to back: a machine left idle 30 s goes back, with runs/ and its checkpoints):
 #   bash tools/device_job.sh fp32 python -m experiments.study ab_precision 'only=[fp32]' 'archs=[modumorph]' \
 #     'seeds=[0,1]' time_limit_min=8.7 -- progress=false

@@ -6,9 +6,13 @@
 A fresh machine compiles the train step for ~100-150 s in a lease's first call; the programs compiled in an earlier
 lease serve it when they travel (`.gpu/xla-cache.tar.gz`, carried). JAX reads an entry only when its key matches: the
 same program (the training code unchanged), JAX version, compiler options and GPU model; other entries are ignored.
-What this lease compiled goes first, oldest first (a lease compiles its training programs before its evaluations),
-then what earlier leases brought, those read in this lease before the others (`pack`). Plain Python (no JAX): it runs
-before the wheels are installed and after the command ended.
+The training programs go first (the train step's rollout and update, and the initial state: each 40-70 s of compilation
+that every GPU of a lease waits for before its first iteration), then the others (the evaluations' sweeps, ~2.4 MiB
+each on a GPU, mostly compiled while the runs train); within each, what this lease compiled first, oldest first, then
+what earlier leases brought, those read in this lease before the others (`pack`). Session 28 measured why: with this
+lease's programs first and no kinds, its four new sweeps (9.6 MiB) left room for one model's train step alone, and the
+model it had read from the carried cache lost its own. Plain Python (no JAX): it runs before the wheels are installed
+and after the command ended.
 """
 from __future__ import annotations
 
@@ -17,6 +21,13 @@ import tarfile
 from pathlib import Path
 
 MAX_MB = 15.0       # what one file from $OUT may be (16 MiB), less a margin
+#: JAX names a cache entry `jit_<function>-<key>-cache`: the trainer's jitted functions (mjx_morph/ppo/trainer.py)
+TRAINING_PROGRAMS = ("jit__init_state", "jit__rollout", "jit__update", "jit__iteration")
+
+
+def is_training_program(p: Path) -> bool:
+    """Whether a cache entry is one of the trainer's programs (by the function name JAX puts before its key)."""
+    return p.name.split("-", 1)[0] in TRAINING_PROGRAMS
 
 
 def carried_list(cache: Path) -> Path:
@@ -28,19 +39,20 @@ def carried_list(cache: Path) -> Path:
 def pack(cache: Path, archive: Path, max_mb: float = MAX_MB) -> tuple[int, int, int]:
     """The cache's files into `archive` while their sizes add up to at most `max_mb` MiB (a file that would cross it
     is left out, and smaller later ones still go; the entries are compressed already, gzip gains little), in this
-    order: the programs compiled here, oldest first (a lease compiles its training programs first); then those an
-    earlier lease brought (`unpack`), the ones read since (a hit: the file system set their access time after the
-    modification time that unpack gave them) before the others, newest first within each. So programs that no longer
-    match the code give way to the new ones. Returns (files packed, files in the cache, bytes of the cache)."""
+    order: the training programs (`TRAINING_PROGRAMS`) before the others, and within each, the programs compiled here,
+    oldest first; then those an earlier lease brought (`unpack`), the ones read since (a hit: the file system set their
+    access time after the modification time that unpack gave them) before the others, newest first within each. So
+    programs that no longer match the code give way to the new ones. Returns (files packed, files in the cache, bytes
+    of the cache)."""
     marker = carried_list(cache)
     carried = set(marker.read_text().split("\n")) - {""} if marker.is_file() else set()
     files = [p for p in cache.rglob("*") if p.is_file()]
 
     def rank(p: Path):
-        st = p.stat()
+        st, kind = p.stat(), 0 if is_training_program(p) else 1
         if str(p.relative_to(cache)) not in carried:
-            return (0, st.st_mtime, str(p))
-        return (1 if st.st_atime > st.st_mtime else 2, -st.st_mtime, str(p))
+            return (kind, 0, st.st_mtime, str(p))
+        return (kind, 1 if st.st_atime > st.st_mtime else 2, -st.st_mtime, str(p))
     files.sort(key=rank)
     total, limit, size, keep = sum(p.stat().st_size for p in files), int(max_mb * 2 ** 20), 0, []
     for p in files:
