@@ -9,8 +9,8 @@
 A study file lists `runs` (name -> overrides of experiments.run), and optionally `common` (overrides of every run),
 `archs` and `seeds` (the defaults of archs= and seeds=; `seeds_of.<arch>=[...]` gives one architecture other
 seeds, so that one plan holds the runs each model still needs, and `stop_at_of.<arch>=N` its own experiments.run
-stop_at, so that each model stops where the runs it pools with were evaluated) and `evaluate` (the sets to evaluate each run on, in
-order; `evaluate=[...]` for others, e.g. the zero-shot sets first: `evaluate=[test,variants]`).
+stop_at, so that each model stops where the runs it pools with were evaluated) and `evaluate` (the sets to evaluate
+each run on, in order; `evaluate=[...]` for others, e.g. the zero-shot sets first: `evaluate=[test,variants]`).
 
 Run directories: <out>/<study>/<env>-<arch>-<run>-s<seed> (default out: runs/studies). Each run is an ordinary
 `experiments.run` run: rerunning the study resumes unfinished runs; finished ones are not retrained, and a set
@@ -24,8 +24,9 @@ left giving way to shorter ones after it; rerun to go on):
 
 In the last minutes of a run's training (evaluate.PrepareEvaluation: about 4 minutes of iterations left) a background
 thread builds the envs of the sets the time limit will let it evaluate and compiles their sweeps, on the host's CPU
-while the GPU trains; the evaluations then start at once, and the time limit counts them at `EVAL_MINUTES_PREPARED`.
-`prepare_eval=false` turns this off.
+while the GPU trains; the evaluations then start at once, each set waiting for its own preparation alone if that is
+still under way, and the time limit counts them at `EVAL_MINUTES_PREPARED` (one still being prepared at its
+unprepared time, a bound on what is left of it). `prepare_eval=false` turns this off.
 
 The seeds of a run train side by side in one program (`seeds=[...]` of experiments.run; those at the same checkpoint
 together), unless side_by_side=false. Afterwards: python -m experiments.report runs=[<out>/<study>] out=<dir>.
@@ -369,8 +370,10 @@ def run_study(c: StudyConfig, argv: Optional[list[str]] = None) -> None:
         # batch's seeds; one that does not fit gives way to shorter ones after it), counting only those not yet
         # evaluated at the run's last checkpoint. Every process takes the same decision: whether a set is done is read
         # on the main process (the others may not see eval/) and agreed.
-        wait_for_preparation(functools.partial(print, flush=True))     # its time is spent either way
-        prepared = prep.prepared if prep is not None else []
+        # the sets whose preparation has ended count at their prepared time; one still being prepared at its
+        # unprepared time, a bound on what is left of its preparation (evaluate_run waits for each set's own
+        # preparation alone: session 28's runs waited 43-53 s for the variants' before test70, prepared, could sweep)
+        prepared = list(prep.prepared) if prep is not None else []
         steps = [RunDir(r.dir).latest_step() for r in members]        # what evaluate_run evaluates
         jobs, done = [], []
         for s in members[0].sets:
@@ -390,6 +393,7 @@ def run_study(c: StudyConfig, argv: Optional[list[str]] = None) -> None:
                 sets = [jobs[i][0] for i in fit if jobs[i][1] is r]
                 if sets:
                     evaluate_run(r.dir, sets, episodes=c.episodes)
+        wait_for_preparation(functools.partial(print, flush=True))     # one of a set not evaluated ends here
         distributed.barrier("evaluated")
         if len(fit) < len(jobs):
             taken = set(fit)

@@ -220,7 +220,8 @@ def test_the_preparation_runs_below_the_trainings_priority(monkeypatch):
     from mjx_morph.eval import evaluate as ev
     calls = []
     monkeypatch.setattr(ev, "lower_thread_priority", lambda: calls.append("lowered"))
-    monkeypatch.setattr(ev, "prepare_evaluation", lambda *a, **k: calls.append("prepared") or ["test"])
+    monkeypatch.setattr(ev, "prepare_evaluation",
+                        lambda *a, on_set, **k: calls.append("prepared") or on_set("test", True))
     p = ev.PrepareEvaluation(lambda left_s: ["test"])
     p._prepare()
     assert calls == ["lowered", "prepared"] and p.prepared == ["test"]
@@ -231,7 +232,6 @@ def test_an_evaluation_prepared_while_training_builds_and_compiles_nothing_after
     """prepare_evaluation (the study runs it in a background thread in training's last minutes) builds the env and
     compiles the sweep; the evaluate_run after it waits for it, then does neither, and its results equal those of an
     evaluation from scratch. evaluate_run itself prepares each next set while the sets before it sweep."""
-    import threading
     from collections import OrderedDict
     from mjx_morph.eval import evaluate as ev
     monkeypatch.setattr(ev, "_SWEEPERS", OrderedDict())          # nothing kept from the other tests
@@ -241,12 +241,12 @@ def test_an_evaluation_prepared_while_training_builds_and_compiles_nothing_after
     run = load_run(d)
     kw = dict(episodes=2, episode_length=STEPS, trace_steps=STEPS)
     prep, log = [], []
-    thread = threading.Thread(target=ev.prepare_evaluation, args=(run.config, run.experiment.model, run.state,
-                                                                  ["train"]), kwargs={**kw, "log": prep.append})
-    monkeypatch.setattr(ev, "_PREPARING", thread)
-    thread.start()
+    monkeypatch.setattr(ev, "_PREPARING", None)
+    thread = ev.start_preparation(run.config, run.experiment.model, run.state, ["train"], 2, log=prep.append,
+                                  target=partial(ev.prepare_evaluation, episode_length=STEPS, trace_steps=STEPS))
     out = evaluate_run(d, ["train"], seed=0, zero_state_steps=10, log=log.append, **kw)
-    assert not thread.is_alive()
+    thread.join(60)
+    assert not thread.is_alive() and not ev._is_pending("train")
     assert prep[0].startswith("[mjx_morph] train: building the env of 2 robots") and "env built in" in prep[1]
     assert prep[2].startswith("[mjx_morph] train: evaluation prepared while the run trained")
     assert "[mjx_morph] train: env and sweep prepared while the run trained" in log
@@ -267,6 +267,39 @@ def test_an_evaluation_prepared_while_training_builds_and_compiles_nothing_after
     assert not any("test:" in ln and "compilation included" in ln for ln in log), log
 
 
+def test_an_evaluation_waits_for_its_own_sets_preparation_alone(monkeypatch):
+    """start_preparation marks its sets pending before its thread starts; each set stops being pending as its
+    preparation ends (on_set told first), so the evaluation of test70 waits for test70's and not for the variants'
+    still under way (session 28: 43-53 s). A failed preparation ends its sets too."""
+    import threading
+    from mjx_morph.eval import evaluate as ev
+    release, order, told, log = threading.Event(), [], [], []
+
+    def prepare_set(cfg, model, like, es, *args):
+        if es.tag == "variants":
+            release.wait(30)
+        order.append(es.tag)
+        return True
+    monkeypatch.setattr(ev, "_prepare_set", prepare_set)
+    monkeypatch.setattr(ev, "resolve_set", lambda cfg, name: ev.EvalSet(ev.set_tag(name), name, ()))
+    monkeypatch.setattr(ev, "_PENDING", {})
+    monkeypatch.setattr(ev, "_PREPARING", None)
+    thread = ev.start_preparation("cfg", "model", "like", ["test", "variants"], log=log.append,
+                                  target=partial(ev.prepare_evaluation, on_set=lambda n, ok: told.append((n, ok))))
+    ev._await_pending("test", log.append)
+    assert order == ["test"] and told == [("test", True)] and ev._is_pending("variants")
+    ev._await_pending("train", log.append)                  # nothing prepared for it: no wait
+    assert not any("train" in ln for ln in log)
+    release.set()
+    ev._await_pending("variants", log.append)
+    assert order == ["test", "variants"] and not ev._is_pending("variants")
+    thread.join(30)
+    assert not thread.is_alive() and ev._PENDING == {}
+    monkeypatch.setattr(ev, "resolve_set", lambda cfg, name: 1 / 0)
+    ev.start_preparation("cfg", "model", "like", ["test"], log=log.append).join(30)
+    assert ev._PENDING == {} and "test: preparing the evaluation failed (ZeroDivisionError" in log[-1]
+
+
 def test_prepare_evaluation_starts_once_when_little_training_is_left(monkeypatch):
     """The callback starts the preparation once: when iterations left x the median iteration time (the invocation's
     compiling first iteration left out) is within lead_s and the study names sets to prepare; with the train
@@ -274,10 +307,13 @@ def test_prepare_evaluation_starts_once_when_little_training_is_left(monkeypatch
     from types import SimpleNamespace
     from mjx_morph.eval import evaluate as ev
     started, asked = [], []
-    monkeypatch.setattr(ev, "prepare_evaluation",
-                        lambda cfg, model, like, names, episodes, log: started.append((cfg, model, like, names,
-                                                                                       episodes)) or names[1:])
+    def prepare(cfg, model, like, names, episodes, log, on_set):
+        started.append((cfg, model, like, names, episodes))
+        for name in names:
+            on_set(name, name != "test")
+    monkeypatch.setattr(ev, "prepare_evaluation", prepare)
     monkeypatch.setattr(ev, "_PREPARING", None)
+    monkeypatch.setattr(ev, "_PENDING", {})
     cb = ev.PrepareEvaluation(lambda s: asked.append(s) or (["test", "variants"] if s < 50 else []), episodes=3,
                               lead_s=100, log=lambda line: None)
     state = SimpleNamespace(params={"w": jnp.zeros((2, 3))}, obs_rms=jnp.ones(4, jnp.int32))

@@ -58,6 +58,7 @@ _SWEEPERS: OrderedDict[str, Sweeper] = OrderedDict()
 _SWEEPERS_LOCK = threading.Lock()
 SWEEPERS_KEPT = 4
 _PREPARING: threading.Thread | None = None    # the background preparation of PrepareEvaluation, if one was started
+_PENDING: dict[str, threading.Event] = {}     # ... and the sets (tags) it has yet to finish, each set when it ends
 PREPARE_LEAD_S = 240.0      # PrepareEvaluation starts when about this much training is left (4 min: the variants'
                             # env build and compilation take ~1.5 min on an H100 host)
 TRACE_STEPS = 500           # steps of the reward-per-timestep trace
@@ -152,7 +153,6 @@ def evaluate_run(run_dir: str | Path, sets: Iterable[str | EvalSet] = ("train", 
         if value is not None and value < least:
             raise ValueError(f"{key}={value}: expected {'a positive number' if least else '0 or more'}")
     run_dir = Path(run_dir)
-    wait_for_preparation(log)
     loaded = load_run(run_dir, step)
     cfg, model, trainer, ts, step = loaded.config, loaded.experiment.model, loaded.experiment.trainer, \
         loaded.state, loaded.step
@@ -171,11 +171,13 @@ def evaluate_run(run_dir: str | Path, sets: Iterable[str | EvalSet] = ("train", 
         names = [m.name for m in es.robots]
         if ahead is not None:
             ahead.join()                                  # the set prepared while the last one ran
+        _await_pending(es.tag, log)                       # ... or while the run trained: this set's preparation alone
         sweeper = _sweeper_for(cfg, model, es, env_over, trace_steps, log)
         # the next set's env build and compilation run on the host while this set's sweeps run on the device (a
         # set not yet kept: session 27's variants built their env for ~60 s after test70's sweep)
         ahead = None
-        if i + 1 < len(eval_sets) and not _kept(cfg, eval_sets[i + 1], env_over, trace_steps):
+        if i + 1 < len(eval_sets) and not _kept(cfg, eval_sets[i + 1], env_over, trace_steps) \
+                and not _is_pending(eval_sets[i + 1].tag):
             ahead = threading.Thread(target=_prepare_set, name="prepare-next-set", daemon=True,
                                      args=(cfg, model, ts, eval_sets[i + 1], episodes, env_over, trace_steps,
                                            max_envs, log, f"{es.tag}'s sweeps ran"))
@@ -267,25 +269,73 @@ def _chunk(episodes: int, max_envs: int | None) -> int:
 
 def prepare_evaluation(cfg: RunConfig, model, like, sets: Sequence[str], episodes: int = 4,
                        episode_length: int | None = None, trace_steps: int = TRACE_STEPS,
-                       log: Callable[[str], None] = print) -> list[str]:
+                       log: Callable[[str], None] = print,
+                       on_set: Callable[[str, bool], None] | None = None) -> list[str]:
     """Build the envs of `sets` and compile their sweeps ahead of an `evaluate_run` with the same `episodes`,
     `episode_length` and `trace_steps` (and no `max_envs`), for a train state shaped like `like` (`.params` and
     `.obs_rms`: arrays or jax.ShapeDtypeStruct). Meant for a background thread while the run trains
-    (`PrepareEvaluation`); the sweepers are kept for the evaluate_run of this process, which waits for the
-    preparation to end. Errors are logged, never raised: evaluate_run then does the work itself. Returns the sets
-    prepared."""
+    (`PrepareEvaluation`); the sweepers are kept for the evaluate_run of this process, which waits for each set's
+    preparation to end before it evaluates the set (`start_preparation`), not for the others. Errors are logged,
+    never raised: evaluate_run then does the work itself. `on_set(name, ok)` is called as each set ends. Returns the
+    sets prepared."""
     env_over = {"episode_length": int(episode_length)} if episode_length else {}
     done = []
-    for name in sets:
-        try:
-            es = resolve_set(cfg, name)
-        except Exception as e:             # noqa: BLE001 - the training goes on; evaluate_run redoes this set
-            log(f"[mjx_morph] {name}: preparing the evaluation failed ({type(e).__name__}: {e}); it is built when "
-                "the evaluation starts")
-            continue
-        if _prepare_set(cfg, model, like, es, episodes, env_over, trace_steps, None, log, "the run trained"):
-            done.append(name)
+    try:
+        for name in sets:
+            try:
+                es = resolve_set(cfg, name)
+                ok = _prepare_set(cfg, model, like, es, episodes, env_over, trace_steps, None, log, "the run trained")
+            except Exception as e:         # noqa: BLE001 - the training goes on; evaluate_run redoes this set
+                log(f"[mjx_morph] {name}: preparing the evaluation failed ({type(e).__name__}: {e}); it is built "
+                    "when the evaluation starts")
+                ok = False
+            if ok:
+                done.append(name)
+            if on_set is not None:
+                on_set(name, ok)
+            _end_pending(name)
+    finally:
+        for name in sets:                  # whatever happened, no evaluation waits for a set that is not coming
+            _end_pending(name)
     return done
+
+
+def start_preparation(cfg: RunConfig, model, like, sets: Sequence[str], episodes: int = 4,
+                      log: Callable[[str], None] = print, target: Callable | None = None) -> threading.Thread:
+    """Run `prepare_evaluation` (or `target`, which calls it with the same arguments) in a background thread, the
+    sets marked pending first, so that an evaluate_run started at any time after this returns waits for a set's
+    preparation before it evaluates that set, and for no other."""
+    global _PREPARING
+    with _SWEEPERS_LOCK:
+        for name in sets:
+            _PENDING[set_tag(name)] = threading.Event()
+    _PREPARING = threading.Thread(target=target or prepare_evaluation, name="prepare-evaluation", daemon=True,
+                                  args=(cfg, model, like, list(sets), episodes), kwargs=dict(log=log))
+    _PREPARING.start()
+    return _PREPARING
+
+
+def _end_pending(name: str) -> None:
+    with _SWEEPERS_LOCK:
+        event = _PENDING.pop(set_tag(name), None)
+    if event is not None:
+        event.set()
+
+
+def _is_pending(tag: str) -> bool:
+    with _SWEEPERS_LOCK:
+        return tag in _PENDING
+
+
+def _await_pending(tag: str, log: Callable[[str], None]) -> None:
+    """Wait until the training-time preparation of set `tag` has ended, if one is under way."""
+    with _SWEEPERS_LOCK:
+        event = _PENDING.get(tag)
+    if event is not None and not event.is_set():
+        t0 = time.perf_counter()
+        log(f"[mjx_morph] {tag}: waiting for its evaluation being prepared...")
+        event.wait()
+        log(f"[mjx_morph] {tag}: ... ready after {time.perf_counter() - t0:.0f} s")
 
 
 def _prepare_set(cfg: RunConfig, model, like, es: EvalSet, episodes: int, env_over: dict, trace_steps: int,
@@ -307,7 +357,7 @@ def _prepare_set(cfg: RunConfig, model, like, es: EvalSet, episodes: int, env_ov
 
 
 def wait_for_preparation(log: Callable[[str], None] = print) -> None:
-    """Wait until the preparation that a PrepareEvaluation started (if any) has ended."""
+    """Wait until the preparation that a PrepareEvaluation started (if any) has ended, all of its sets."""
     global _PREPARING
     thread, _PREPARING = _PREPARING, None
     if thread is not None and thread.is_alive():
@@ -323,8 +373,8 @@ class PrepareEvaluation(Callback):
     evaluation after training starts at once: the env build and compilation (on an H100 host ~1.5 minutes of the
     variants' ~5, most of test70's ~1.25) run on the host's CPU while the GPU trains. `sets(seconds)` names the sets
     to prepare given the seconds of training estimated left (a study: those its time limit will let it evaluate);
-    nothing is prepared while it names none. One process only (evaluation runs on one). After
-    `wait_for_preparation`, `prepared` names the sets prepared."""
+    nothing is prepared while it names none. One process only (evaluation runs on one). `prepared` names the sets
+    prepared so far (each added as its preparation ends; all of them after `wait_for_preparation`)."""
 
     def __init__(self, sets: Callable[[float], Sequence[str]], episodes: int = 4, lead_s: float = PREPARE_LEAD_S,
                  log: Callable[[str], None] = print):
@@ -337,10 +387,9 @@ class PrepareEvaluation(Callback):
         # below the training's priority: session 22 measured the training's iterations 15-24 s slower in all while
         # four runs on one host prepared the variants at the training's priority
         lower_thread_priority()
-        self.prepared = prepare_evaluation(*args, **kwargs)
+        prepare_evaluation(*args, **kwargs, on_set=lambda name, ok: ok and self.prepared.append(name))
 
     def on_iteration(self, loop, state, row):
-        global _PREPARING
         it = int(row["iteration"])
         if self.started or loop.member != 0 or jax.process_count() > 1:
             return
@@ -362,10 +411,8 @@ class PrepareEvaluation(Callback):
         self.started = True
         self.log(f"[mjx_morph] preparing the evaluation of {', '.join(names)} while training (about "
                  f"{left_s:.0f} s of training left)")
-        _PREPARING = threading.Thread(target=self._prepare, name="prepare-evaluation", daemon=True,
-                                      args=(loop.config, loop.experiment.model, like, names, self.episodes),
-                                      kwargs=dict(log=self.log))
-        _PREPARING.start()
+        start_preparation(loop.config, loop.experiment.model, like, names, self.episodes, log=self.log,
+                          target=self._prepare)
 
 
 class _Meter:
