@@ -298,6 +298,9 @@ def test_an_evaluation_waits_for_its_own_sets_preparation_alone(monkeypatch):
     monkeypatch.setattr(ev, "resolve_set", lambda cfg, name: 1 / 0)
     ev.start_preparation("cfg", "model", "like", ["test"], log=log.append).join(30)
     assert ev._PENDING == {} and "test: preparing the evaluation failed (ZeroDivisionError" in log[-1]
+    monkeypatch.setattr(threading, "excepthook", lambda args: log.append(f"raised {args.exc_type.__name__}"))
+    ev.start_preparation("cfg", "model", "like", ["test"], target=lambda *a, **k: 1 / 0).join(30)
+    assert ev._PENDING == {} and log[-1] == "raised ZeroDivisionError"     # a target that raises ends them too
 
 
 def test_prepare_evaluation_starts_once_when_little_training_is_left(monkeypatch):

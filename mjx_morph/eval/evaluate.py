@@ -306,11 +306,18 @@ def start_preparation(cfg: RunConfig, model, like, sets: Sequence[str], episodes
     sets marked pending first, so that an evaluate_run started at any time after this returns waits for a set's
     preparation before it evaluates that set, and for no other."""
     global _PREPARING
+    sets = list(sets)
     with _SWEEPERS_LOCK:
         for name in sets:
             _PENDING[set_tag(name)] = threading.Event()
-    _PREPARING = threading.Thread(target=target or prepare_evaluation, name="prepare-evaluation", daemon=True,
-                                  args=(cfg, model, like, list(sets), episodes), kwargs=dict(log=log))
+
+    def run():
+        try:
+            (target or prepare_evaluation)(cfg, model, like, sets, episodes, log=log)
+        finally:                    # whatever `target` does, no evaluation waits for a set that is not coming
+            for name in sets:
+                _end_pending(name)
+    _PREPARING = threading.Thread(target=run, name="prepare-evaluation", daemon=True)
     _PREPARING.start()
     return _PREPARING
 
