@@ -10,9 +10,9 @@ The training programs go first (the train step's rollout and update, and the ini
 that every GPU of a lease waits for before its first iteration), then the others (the evaluations' sweeps, ~2.4 MiB
 each on a GPU, mostly compiled while the runs train); within each, what this lease compiled first, oldest first, then
 what earlier leases brought, those read in this lease before the others (`pack`). Session 28 measured why: with this
-lease's programs first and no kinds, its four new sweeps (9.6 MiB) left room for one model's train step alone, and the
-model it had read from the carried cache lost its own. Plain Python (no JAX): it runs before the wheels are installed
-and after the command ended.
+lease's programs first whatever their kind, its four new sweeps (9.6 MiB) left room for one model's train step alone,
+and the model it had read from the carried cache lost its own. Plain Python (no JAX): it runs before the wheels are
+installed and after the command ended.
 """
 from __future__ import annotations
 

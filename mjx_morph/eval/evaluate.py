@@ -280,23 +280,20 @@ def prepare_evaluation(cfg: RunConfig, model, like, sets: Sequence[str], episode
     sets prepared."""
     env_over = {"episode_length": int(episode_length)} if episode_length else {}
     done = []
-    try:
-        for name in sets:
-            try:
-                es = resolve_set(cfg, name)
-                ok = _prepare_set(cfg, model, like, es, episodes, env_over, trace_steps, None, log, "the run trained")
-            except Exception as e:         # noqa: BLE001 - the training goes on; evaluate_run redoes this set
-                log(f"[mjx_morph] {name}: preparing the evaluation failed ({type(e).__name__}: {e}); it is built "
-                    "when the evaluation starts")
-                ok = False
-            if ok:
-                done.append(name)
-            if on_set is not None:
-                on_set(name, ok)
-            _end_pending(name)
-    finally:
-        for name in sets:                  # whatever happened, no evaluation waits for a set that is not coming
-            _end_pending(name)
+    for name in sets:
+        try:
+            es = resolve_set(cfg, name)
+        except Exception as e:             # noqa: BLE001 - the training goes on; evaluate_run redoes this set
+            log(f"[mjx_morph] {name}: preparing the evaluation failed ({type(e).__name__}: {e}); it is built when "
+                "the evaluation starts")
+            ok = False
+        else:
+            ok = _prepare_set(cfg, model, like, es, episodes, env_over, trace_steps, None, log, "the run trained")
+        if ok:
+            done.append(name)
+        if on_set is not None:
+            on_set(name, ok)
+        _end_pending(name)                 # its evaluation may start (start_preparation ends the rest at the end)
     return done
 
 
