@@ -27,8 +27,8 @@ covering each grid point (no band with one seed).
 Claims (`CLAIMS`, the paper's claims as data): per task, each model against its baseline on one eval set, on the
 main runs of the groups named exactly by the architecture (so not the arms of an A/B study, e.g. "rmomo,
 precision=bf16"), with seeds as the samples and the verdict rule of `stats.claim_test`; a claim that a side has no
-eval/<set>.json for is listed under "Missing". Policies are compared at one point of training: where a model's seeds
-were evaluated at different env steps (the checkpoint of eval/<set>.json), the claim takes the evaluations at the
+eval/<set>.json for is listed under "Missing" (unless neither model ran the task). Policies are compared at one
+point of training: where a model's seeds were evaluated at different env steps (the checkpoint of eval/<set>.json), the claim takes the evaluations at the
 steps both models have most seeds at (`stats.common_eval_steps`) and names the others under "Missing"; the
 per-robot differences take the same evaluations (the returns table and its bars pool every step, and say so). The
 training claims are also tested on the learning curves (set "training", `TRAINING_CLAIMS`: each seed's last ~5% of
@@ -434,6 +434,8 @@ def _claims(doc: Document, ctx: ReportContext) -> None:
             sides += [(c, set_name, seed_train_means(main.get(c.model, []), at),
                        seed_train_means(main.get(c.baseline, []), at), at, None) for set_name, at in points.items()]
         for c, set_name, a, b, at, why in sides:
+            if not {c.model, c.baseline} & {group.split(",", 1)[0] for group in main}:
+                continue                    # neither model (nor an A/B arm of one) ran this task: nothing to say
             if why or not a or not b:
                 untested.append(f"{c.text} ({set_name}: "
                                 + (why or f"{c.model} {len(a)}, {c.baseline} {len(b)} seeds") + ")")
@@ -459,7 +461,7 @@ def _claims(doc: Document, ctx: ReportContext) -> None:
                                + (f" (A/B arms are not compared: {'; '.join(arms)})" if arms else ""))
     if rows:
         m = f"{100 * CLAIM_MARGIN:g}%"
-        level, bar = f"{100 * ci_level(ctx.looks):g}%", f"{0.025 / ctx.looks:.4g}"
+        level, bar = f"{100 * ci_level(ctx.looks):.4g}%", f"{0.025 / ctx.looks:.4g}"
         looked = ("" if ctx.looks == 1 else
                   f" The comparisons were looked at {ctx.looks} times as seeds came in (looks={ctx.looks}): the CIs "
                   f"are at {level} and a claim is reproduced at p < 0.025 / {ctx.looks} = {bar} (Bonferroni), so that "
@@ -476,7 +478,7 @@ def _claims(doc: Document, ctx: ReportContext) -> None:
                        "seeds at; the others are named under Missing) (set 'training': the mean episode return of "
                        "the last ~5% of iterations in metrics.csv, of the runs that reached the furthest env steps; "
                        "'training_all': of every run, up to the env steps that all of them reached); "
-                       "difference of the means over seeds, model − baseline, 95% CI from Welch's t; "
+                       f"difference of the means over seeds, model − baseline, {level} CI from Welch's t; "
                        f"margin m = {m} of the baseline's mean. 'beats': reproduced if the CI lies above 0, not "
                        "reproduced if below m; 'at least as well': reproduced if above −m, not reproduced if below "
                        "0; otherwise inconclusive. p: Welch's one-sided p-value against the claim's bound (0 or −m): "
