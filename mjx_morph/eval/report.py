@@ -28,12 +28,12 @@ Claims (`CLAIMS`, the paper's claims as data): per task, each model against its 
 main runs of the groups named exactly by the architecture (so not the arms of an A/B study, e.g. "rmomo,
 precision=bf16"), with seeds as the samples and the verdict rule of `stats.claim_test`; a claim that a side has no
 eval/<set>.json for is listed under "Missing" (unless neither model ran the task). Policies are compared at one
-point of training: where a model's seeds were evaluated at different env steps (the checkpoint of eval/<set>.json), the claim takes the evaluations at the
-steps both models have most seeds at (`stats.common_eval_steps`) and names the others under "Missing"; the
-per-robot differences take the same evaluations (the returns table and its bars pool every step, and say so). The
-training claims are also tested on the learning curves (set "training", `TRAINING_CLAIMS`: each seed's last ~5% of
-iterations in metrics.csv, runs at the furthest env steps; where some runs stopped short, also set "training_all":
-every run, at the env steps all of them reached).
+point of training: where a model's seeds were evaluated at different env steps (the checkpoint of eval/<set>.json),
+the claim takes the evaluations at the steps both models have most seeds at (`stats.common_eval_steps`) and names
+the others under "Missing"; the per-robot differences take the same evaluations (the returns table and its bars
+pool every step, and say so). The training claims are also tested on the learning curves (set "training",
+`TRAINING_CLAIMS`: each seed's last ~5% of iterations in metrics.csv, runs at the furthest env steps; where some
+runs stopped short, also set "training_all": every run, at the env steps all of them reached).
 
 The report is the sections of `SECTIONS`, in order: each is a function (document, context) that adds figures
 (under its heading), tables and missing items to the `document.Document`; `build_report` reads the runs, makes the
