@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import shutil
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -72,6 +73,44 @@ def test_interrupted_and_resumed_run_ends_like_uninterrupted(full_run, exp, tmp_
     invocations = yaml.safe_load((d / "devices.yaml").read_text())  # the resume appended its own entry
     assert [e["start_iteration"] for e in invocations] == [0, 2]
     assert {e["device_kind"] for e in invocations} == {jax.devices()[0].device_kind}
+
+
+class CtrlC(Callback):
+    """Sends this process Ctrl-C (SIGINT) after iteration `at`, and again (twice, as the device tool's `timeout`
+    does) when the run stops, before the checkpoint callback after it writes the last checkpoint."""
+
+    def __init__(self, at: int):
+        self.at = at
+
+    def on_iteration(self, loop, state, row):
+        if row["iteration"] == self.at:
+            os.kill(os.getpid(), signal.SIGINT)
+
+    def on_stop(self, loop, state, reason):
+        os.kill(os.getpid(), signal.SIGINT)
+        os.kill(os.getpid(), signal.SIGINT)
+
+
+def test_ctrl_c_saves_a_checkpoint_and_a_second_one_waits_for_it(exp, tmp_path, capsys):
+    """Ctrl-C ends the invocation with a checkpoint (reason "interrupted"); Ctrl-C again while the run stops is held
+    until that checkpoint is written, then raised; the run resumes from it."""
+    from mjx_morph.run.loop import Checkpoints, MetricsLog
+    d, seen = tmp_path / "interrupted", Recorder()
+    before = signal.signal(signal.SIGINT, signal.default_int_handler)   # a pytest-xdist worker may ignore SIGINT
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            train(config(f"run_dir={d}", "checkpoint_every=100"), exp,
+                  callbacks=[MetricsLog(), seen, CtrlC(at=1), Checkpoints(100)])
+        assert signal.getsignal(signal.SIGINT) is signal.default_int_handler       # restored after the hold
+    finally:
+        signal.signal(signal.SIGINT, before)
+    assert seen.events == [("start", 0, 3), ("iteration", 1), ("stop", "interrupted", 1)]
+    assert RunDir(d).latest_step() == 1
+    err = capsys.readouterr().err
+    assert err.count("Ctrl-C: held until the last checkpoint is written") == 1
+    assert "interrupted at iteration 1; checkpoint saved" in err
+    train(config(f"run_dir={d}"), exp)
+    assert [int(r["iteration"]) for r in RunDir(d).read_metrics()] == [1, 2, 3]
 
 
 def test_run_moved_in_parts_resumes_like_uninterrupted(full_run, exp, tmp_path):

@@ -9,7 +9,8 @@ calls the iteration, and reports through callbacks (metrics, progress bar, check
 
 A resumed run ends where an uninterrupted one would: the whole train state (parameters, optimiser, normalisers,
 sampler, env and recurrent state, keys) is in the checkpoint. `stop_after` and `time_limit_min` end an invocation
-early with a checkpoint, `stop_at` ends the run at that iteration for good (a rerun does nothing more); Ctrl-C does too.
+early with a checkpoint, `stop_at` ends the run at that iteration for good (a rerun does nothing more); Ctrl-C ends
+an invocation with a checkpoint too, and a Ctrl-C while the last checkpoint is written waits for it (`interrupts_held`).
 
 Callbacks (`Callback`): `on_start(loop)` once, `on_iteration(loop, state, row)` after every iteration with the
 metrics row, `on_stop(loop, state, reason)` once at the end, reason "done" (the invocation's last iteration ran),
@@ -27,8 +28,10 @@ progress bar, and its clock decides the time limit. Ctrl-C saves no checkpoint t
 """
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import os
+import signal
 import sys
 import threading
 import time
@@ -219,6 +222,31 @@ class Summary(Callback):
                   f"{last.get('episode_return', float('nan')):.2f}; learning curve {png}", flush=True)
 
 
+@contextlib.contextmanager
+def interrupts_held(note: str):
+    """Ctrl-C (SIGINT) while the body runs is held, `note` printed, and KeyboardInterrupt raised once the body has
+    ended (a second Ctrl-C is held too: the device tool sends one to the command and one to its process group, and
+    it kills the command 20 s later anyway). Only the main thread can set signal handlers: elsewhere, a no-op."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    held = []
+
+    def hold(signum, frame):
+        if not held:
+            print(f"\n{note}", file=sys.stderr, flush=True)
+        held.append(signum)
+    before = signal.signal(signal.SIGINT, hold)
+    if before is None:                  # a handler set outside Python: Python's own is the nearest to restore
+        before = signal.default_int_handler
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, before)
+    if held:
+        raise KeyboardInterrupt
+
+
 def default_callbacks(cfg: RunConfig) -> list[Callback]:
     progress = [ProgressBar()] if cfg.progress else [ProgressLines(cfg.progress_every_min)] \
         if cfg.progress_every_min else []
@@ -375,14 +403,17 @@ def train(cfg: Any, experiment: Experiment | None = None, callbacks: Sequence[Ca
         raise
     finally:
         watchdog.disarm()
-        for loop in loops:
-            for cb in callbacks:
-                cb.on_stop(loop, state, reason)
-            loop.run.close()
-        if reason in ("time_limit", "interrupted"):
-            what = "time limit reached" if reason == "time_limit" else "interrupted"
-            saved = "checkpoint saved" if reason == "time_limit" or not distributed.several() else \
-                "no checkpoint saved (several processes: a rerun resumes from the last periodic one)"
-            print(f"\n[mjx_morph] {what} at iteration {it}; {saved}. "
-                  f"Rerun the same command to resume.", file=sys.stderr, flush=True)
+        # the last checkpoint is written whatever Ctrl-C comes meanwhile (session 29: a run that stopped at its time
+        # limit got the device tool's Ctrl-C seconds later, luckily after its save): held, then raised
+        with interrupts_held("[mjx_morph] Ctrl-C: held until the last checkpoint is written"):
+            for loop in loops:
+                for cb in callbacks:
+                    cb.on_stop(loop, state, reason)
+                loop.run.close()
+            if reason in ("time_limit", "interrupted"):
+                what = "time limit reached" if reason == "time_limit" else "interrupted"
+                saved = "checkpoint saved" if reason == "time_limit" or not distributed.several() else \
+                    "no checkpoint saved (several processes: a rerun resumes from the last periodic one)"
+                print(f"\n[mjx_morph] {what} at iteration {it}; {saved}. "
+                      f"Rerun the same command to resume.", file=sys.stderr, flush=True)
     return [run.path for run in runs] if seeded else runs[0].path
