@@ -424,18 +424,20 @@ def _claims(doc: Document, ctx: ReportContext) -> None:
     claim_archs = {a for c in CLAIMS for a in (c.model, c.baseline)}
     for t in ctx.tasks:
         main, untested = ctx.main[t], []
+        # the claims of a model (or an A/B arm of one) that ran this task; the others are for another report
+        ran = {group.split(",", 1)[0] for group in main}
+        eval_claims, training_claims = ([c for c in claims if {c.model, c.baseline} & ran]
+                                        for claims in (CLAIMS, TRAINING_CLAIMS))
         # (claim, set, model's seed means, baseline's, env steps: of the evaluations compared, or a training row's
         # point; nan where the eval files do not say)
-        sides = [_eval_claim_sides(doc, t, main, c) for c in CLAIMS]
-        for c in TRAINING_CLAIMS:
+        sides = [_eval_claim_sides(doc, t, main, c) for c in eval_claims]
+        for c in training_claims:
             both = [r for a in (c.model, c.baseline) for r in main.get(a, []) if math.isfinite(r.final_train_return())]
             reached = sorted({r.final_steps for r in both}) or [math.nan]     # nan: no runs, listed as untested
             points = {TRAINING: reached[-1], **({TRAINING_ALL: reached[0]} if len(reached) > 1 else {})}
             sides += [(c, set_name, seed_train_means(main.get(c.model, []), at),
                        seed_train_means(main.get(c.baseline, []), at), at, None) for set_name, at in points.items()]
         for c, set_name, a, b, at, why in sides:
-            if not {c.model, c.baseline} & {group.split(",", 1)[0] for group in main}:
-                continue                    # neither model (nor an A/B arm of one) ran this task: nothing to say
             if why or not a or not b:
                 untested.append(f"{c.text} ({set_name}: "
                                 + (why or f"{c.model} {len(a)}, {c.baseline} {len(b)} seeds") + ")")
