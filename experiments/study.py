@@ -26,7 +26,8 @@ In the last minutes of a run's training (evaluate.PrepareEvaluation: about 4 min
 thread builds the envs of the sets the time limit will let it evaluate and compiles their sweeps, on the host's CPU
 while the GPU trains; the evaluations then start at once, each set waiting for its own preparation alone if that is
 still under way, and the time limit counts them at `EVAL_MINUTES_PREPARED` (one still being prepared at its
-unprepared time, a bound on what is left of it). `prepare_eval=false` turns this off.
+unprepared time less the time its preparation has already run, never below its prepared time). `prepare_eval=false`
+turns this off.
 
 The seeds of a run train side by side in one program (`seeds=[...]` of experiments.run; those at the same checkpoint
 together), unless side_by_side=false. Afterwards: python -m experiments.report runs=[<out>/<study>] out=<dir>.
@@ -88,21 +89,28 @@ EVAL_MINUTES_PREPARED = {"train": 1.0, "val": 0.75, "test": 0.75, "variants": 3.
 EVAL_SET_MIN_PREPARED = 1.0
 
 
-def eval_minutes(name: str, prepared: bool = False) -> float:
+def eval_minutes(name: str, prepared: bool = False, preparing_s: float = 0.0) -> float:
     """The time a study's time limit sets aside for evaluating set `name` of one run (`prepared`: its env and sweep
-    were prepared while the run trained)."""
+    were prepared while the run trained; `preparing_s`: the seconds its preparation, still under way, has run, which
+    come off the unprepared time down to the prepared one. Session 30: the variants of two runs, 9-12 s from
+    prepared, were counted at their whole unprepared 5.5 minutes, did not fit the ~6 minutes left, and were lost with
+    the machine)."""
     if prepared:
         return EVAL_MINUTES_PREPARED.get(name, EVAL_SET_MIN_PREPARED)
-    return EVAL_MINUTES.get(name, EVAL_SET_MIN)
+    full = EVAL_MINUTES.get(name, EVAL_SET_MIN)
+    return max(EVAL_MINUTES_PREPARED.get(name, EVAL_SET_MIN_PREPARED), full - preparing_s / 60.0)
 
 
-def evaluations_that_fit(sets: list[str], minutes: float, prepared) -> list[int]:
+def evaluations_that_fit(sets: list[str], minutes: float, prepared, preparing: dict[str, float] | None = None
+                         ) -> list[int]:
     """The indices of the evaluations `sets` (one set name per (set, run), in order of priority) that fit `minutes`,
-    each counted at `eval_minutes` (its prepared time for the sets in `prepared`): each in turn is taken if it fits
-    what the ones taken before it leave, so that one too long for the time left gives way to shorter ones after it."""
+    each counted at `eval_minutes` (its prepared time for the sets in `prepared`; for one in `preparing`, {set:
+    seconds its preparation has run}, less): each in turn is taken if it fits what the ones taken before it leave, so
+    that one too long for the time left gives way to shorter ones after it."""
+    preparing = preparing or {}
     fit = []
     for i, s in enumerate(sets):
-        need = eval_minutes(s, s in prepared)
+        need = eval_minutes(s, s in prepared, preparing.get(s, 0.0))
         if need <= minutes:
             fit.append(i)
             minutes -= need
@@ -370,10 +378,12 @@ def run_study(c: StudyConfig, argv: Optional[list[str]] = None) -> None:
         # batch's seeds; one that does not fit gives way to shorter ones after it), counting only those not yet
         # evaluated at the run's last checkpoint. Every process takes the same decision: whether a set is done is read
         # on the main process (the others may not see eval/) and agreed.
-        # the sets whose preparation has ended count at their prepared time; one still being prepared at its
-        # unprepared time, a bound on what is left of its preparation (evaluate_run waits for each set's own
-        # preparation alone: session 28's runs waited 43-53 s for the variants' before test70, prepared, could sweep)
+        # the sets whose preparation has ended count at their prepared time; the one still being prepared at its
+        # unprepared time less what its preparation has run, a bound on what is left of it (evaluate_run waits for
+        # each set's own preparation alone: session 28's runs waited 43-53 s for the variants' before test70,
+        # prepared, could sweep)
         prepared = list(prep.prepared) if prep is not None else []
+        preparing = prep.preparing() if prep is not None else {}
         steps = [RunDir(r.dir).latest_step() for r in members]        # what evaluate_run evaluates
         jobs, done = [], []
         for s in members[0].sets:
@@ -383,7 +393,7 @@ def run_study(c: StudyConfig, argv: Optional[list[str]] = None) -> None:
             if any(q is r for _, q in done):
                 distributed.print_main(f"[study] {r.dir}: {', '.join(s for s, q in done if q is r)} already "
                                        f"evaluated at checkpoint {step}", flush=True)
-        fit = evaluations_that_fit([s for s, _ in jobs], minutes_left(), prepared)
+        fit = evaluations_that_fit([s for s, _ in jobs], minutes_left(), prepared, preparing)
         if jobs and not fit:
             print(f"[study] time limit: evaluation of {', '.join(str(r.dir) for r in members)} left for the rerun",
                   flush=True)

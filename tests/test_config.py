@@ -290,6 +290,27 @@ def test_study_prepares_the_evaluations_its_time_limit_will_run(capsys, monkeypa
     assert study.main(short) == 0 and calls == [["val", "test"]]
     trained.clear()
     assert study.main([*short[:-2], "prepare_eval=false", *short[-2:]]) == 0 and calls[-1] == ["val"]
+    # a set still being prepared counts at its unprepared time less what its preparation has run, down to its
+    # prepared time (session 30: the variants, seconds from prepared, counted at 5.5 minutes and were left out)
+    full, ready = study.eval_minutes("variants"), study.eval_minutes("variants", prepared=True)
+    assert study.eval_minutes("variants", preparing_s=30.0) == pytest.approx(full - 0.5)
+    assert study.eval_minutes("variants", preparing_s=1e4) == ready
+    preparing = {"variants": 60.0 * (full - ready)}
+
+    def train_preparing(cfg, callbacks=None):
+        trained.add(tmp_path / "paper" / "ft-rmomo-main-s0")
+        callbacks[-1].prepared = ["test"]
+        callbacks[-1].preparing = lambda: preparing
+    monkeypatch.setattr(study, "train", train_preparing)
+    limit = study.eval_minutes("test", True) + ready + 0.3
+    assert limit < study.eval_minutes("test", True) + full
+    args = [*args[:3], "evaluate=[test,variants]", *args[4:5], f"time_limit_min={limit}", *args[-2:]]
+    trained.clear()
+    assert study.main(args) == 0 and calls[-1] == ["test", "variants"]
+    preparing = {}                      # not started: its whole unprepared time, and it gives way
+    trained.clear()
+    assert study.main(args) == 0 and calls[-1] == ["test"]
+    assert "ft-rmomo-main-s0: variants left for the rerun" in capsys.readouterr().out
 
 
 def test_study_only_selects_runs_and_names_the_known_ones(capsys, unimals):

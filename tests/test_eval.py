@@ -309,10 +309,11 @@ def test_prepare_evaluation_starts_once_when_little_training_is_left(monkeypatch
     state's shapes, not its arrays (the next iteration donates them)."""
     from types import SimpleNamespace
     from mjx_morph.eval import evaluate as ev
-    started, asked = [], []
+    started, asked, preparing = [], [], []
     def prepare(cfg, model, like, names, episodes, log, on_set):
         started.append((cfg, model, like, names, episodes))
         for name in names:
+            preparing.append(cb.preparing())
             on_set(name, name != "test")
     monkeypatch.setattr(ev, "prepare_evaluation", prepare)
     monkeypatch.setattr(ev, "_PREPARING", None)
@@ -328,6 +329,9 @@ def test_prepare_evaluation_starts_once_when_little_training_is_left(monkeypatch
             assert ev._PREPARING is None
     ev.wait_for_preparation()
     assert ev._PREPARING is None and cb.prepared == ["variants"]
+    # the set being prepared and the seconds its preparation has run, one set after the other; none once it ended
+    assert [list(p) for p in preparing] == [["test"], ["variants"]] and cb.preparing() == {}
+    assert all(0.0 <= s < 30.0 for p in preparing for s in p.values())
     assert asked == [100.0, 90.0, 80.0, 70.0, 60.0, 50.0, 40.0]              # iterations 20-26
     [(cfg, model, like, names, episodes)] = started
     assert (cfg, model, names, episodes) == ("cfg", "model", ["test", "variants"], 3)

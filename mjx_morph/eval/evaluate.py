@@ -386,12 +386,29 @@ class PrepareEvaluation(Callback):
         self.walls: list[float] = []
         self.started = False
         self.prepared: list[str] = []        # the sets prepared, once the preparation has ended
+        self._current: tuple[str, float] | None = None     # the set being prepared now, since when (monotonic)
 
-    def _prepare(self, *args, **kwargs) -> None:
+    def _prepare(self, cfg, model, like, names, episodes, log) -> None:
         # below the training's priority: session 22 measured the training's iterations 15-24 s slower in all while
         # four runs on one host prepared the variants at the training's priority
         lower_thread_priority()
-        prepare_evaluation(*args, **kwargs, on_set=lambda name, ok: ok and self.prepared.append(name))
+        names = list(names)
+
+        def on_set(name: str, ok: bool) -> None:        # the sets are prepared one after the other
+            if ok:
+                self.prepared.append(name)
+            following = names[names.index(name) + 1:]
+            self._current = (following[0], time.monotonic()) if following else None
+        self._current = (names[0], time.monotonic()) if names else None
+        try:
+            prepare_evaluation(cfg, model, like, names, episodes, log=log, on_set=on_set)
+        finally:
+            self._current = None
+
+    def preparing(self) -> dict[str, float]:
+        """{set: seconds its preparation has run} for the set being prepared now ({} when none is)."""
+        current = self._current
+        return {} if current is None else {current[0]: time.monotonic() - current[1]}
 
     def on_iteration(self, loop, state, row):
         it = int(row["iteration"])
