@@ -2,7 +2,11 @@
 
 Compiled programs go to a persistent XLA cache (.pytest_cache/xla, or $MJX_MORPH_XLA_CACHE; set it empty for none),
 shared with the CLI subprocesses the tests start: compilation is most of the suite's time, and a rerun of the suite
-on the 2-core CPU machine took 6.5 min instead of 13.8."""
+on the 2-core CPU machine took 6.5 min instead of 13.8. A program is found there only if it lowers to the same text,
+and JAX's lowering depends on what the process traced before (its in-memory caches: after an evaluation, the smoke
+train step lowered with a few helper functions no longer shared, missed the cache and compiled again, 49 s): each
+test module, and each value built once per session, starts from empty in-memory caches (`fresh_jax`), so that a
+program lowers as in a fresh process and is compiled once per suite."""
 from __future__ import annotations
 
 import fcntl
@@ -10,6 +14,7 @@ import json
 import os
 from pathlib import Path
 
+import jax
 import pytest
 
 from mjx_morph.run import use_compile_cache
@@ -33,6 +38,17 @@ os.environ.setdefault("MJX_MORPH_XLA_CACHE", str(ROOT / ".pytest_cache" / "xla")
 use_compile_cache(os.environ["MJX_MORPH_XLA_CACHE"], min_compile_s=1.0)
 
 
+def fresh_jax() -> None:
+    """Empty JAX's in-memory caches (traced functions, lowerings, executables), so that the programs traced next lower
+    as in a fresh process and find the ones compiled elsewhere in the persistent cache."""
+    jax.clear_caches()
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _fresh_jax_per_module():
+    fresh_jax()
+
+
 def smoke_config(*overrides: str):
     """The smoke training config (2 generated robots, tiny networks, 3 iterations) with extra overrides."""
     from mjx_morph.run import compose_run_config
@@ -50,6 +66,7 @@ def once_per_session(tmp_path_factory, name: str, build):
     with open(root / f"{name}.lock", "w") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)    # released when the file closes, also if build raises
         if not done.exists():
+            fresh_jax()
             done.write_text(json.dumps(build(root)))
         return json.loads(done.read_text())
 

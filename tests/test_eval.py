@@ -204,6 +204,8 @@ def test_demo_trains_evaluates_and_reports(tmp_path, capsys):
     """`make demo`'s program end to end, on the smoke settings (whose compiled train step the smoke runs share); its
     video is left to tests/test_render.py, which records and renders an episode the same way."""
     from experiments import demo
+    from conftest import fresh_jax
+    fresh_jax()         # lowered as in a fresh process, its train step is the smoke runs' (persistent cache)
     d = demo.demo(["preset=smoke", f"run_dir={tmp_path / 'demo'}", "progress=false"], unseen=2,
                   episode_length=STEPS, video=False)
     out = capsys.readouterr().out
