@@ -225,8 +225,8 @@ def test_the_preparation_runs_below_the_trainings_priority(monkeypatch):
     monkeypatch.setattr(ev, "prepare_evaluation",
                         lambda *a, on_set, **k: calls.append("prepared") or on_set("test", True))
     p = ev.PrepareEvaluation(lambda left_s: ["test"])
-    p._prepare()
-    assert calls == ["lowered", "prepared"] and p.prepared == ["test"]
+    p._prepare("cfg", "model", "like", ["test"], 4, log=print)
+    assert calls == ["lowered", "prepared"] and p.prepared == ["test"] and p.preparing() == {}
 
 
 def test_an_evaluation_prepared_while_training_builds_and_compiles_nothing_after(evaluated_runs, tmp_path,
