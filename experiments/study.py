@@ -95,10 +95,10 @@ def eval_minutes(name: str, prepared: bool = False, preparing_s: float = 0.0) ->
     come off the unprepared time down to the prepared one. Session 30: the variants of two runs, 9-12 s from
     prepared, were counted at their whole unprepared 5.5 minutes, did not fit the ~6 minutes left, and were lost with
     the machine)."""
+    least = EVAL_MINUTES_PREPARED.get(name, EVAL_SET_MIN_PREPARED)
     if prepared:
-        return EVAL_MINUTES_PREPARED.get(name, EVAL_SET_MIN_PREPARED)
-    full = EVAL_MINUTES.get(name, EVAL_SET_MIN)
-    return max(EVAL_MINUTES_PREPARED.get(name, EVAL_SET_MIN_PREPARED), full - preparing_s / 60.0)
+        return least
+    return max(least, EVAL_MINUTES.get(name, EVAL_SET_MIN) - preparing_s / 60.0)
 
 
 def evaluations_that_fit(sets: list[str], minutes: float, prepared, preparing: dict[str, float] | None = None

@@ -223,7 +223,8 @@ def test_the_preparation_runs_below_the_trainings_priority(monkeypatch):
     calls = []
     monkeypatch.setattr(ev, "lower_thread_priority", lambda: calls.append("lowered"))
     monkeypatch.setattr(ev, "prepare_evaluation",
-                        lambda *a, on_set, **k: calls.append("prepared") or on_set("test", True))
+                        lambda *a, on_start, on_set, **k: on_start("test") or calls.append("prepared")
+                        or on_set("test", True))
     p = ev.PrepareEvaluation(lambda left_s: ["test"])
     p._prepare("cfg", "model", "like", ["test"], 4, log=print)
     assert calls == ["lowered", "prepared"] and p.prepared == ["test"] and p.preparing() == {}
@@ -271,7 +272,7 @@ def test_an_evaluation_prepared_while_training_builds_and_compiles_nothing_after
 
 def test_an_evaluation_waits_for_its_own_sets_preparation_alone(monkeypatch):
     """start_preparation marks its sets pending before its thread starts; each set stops being pending as its
-    preparation ends (on_set told first), so the evaluation of test70 waits for test70's and not for the variants'
+    preparation ends (on_start told as it starts, on_set as it ends), so the evaluation of test70 waits for test70's and not for the variants'
     still under way (session 28: 43-53 s). A failed preparation ends its sets too."""
     import threading
     from mjx_morph.eval import evaluate as ev
@@ -287,14 +288,16 @@ def test_an_evaluation_waits_for_its_own_sets_preparation_alone(monkeypatch):
     monkeypatch.setattr(ev, "_PENDING", {})
     monkeypatch.setattr(ev, "_PREPARING", None)
     thread = ev.start_preparation("cfg", "model", "like", ["test", "variants"], log=log.append,
-                                  target=partial(ev.prepare_evaluation, on_set=lambda n, ok: told.append((n, ok))))
+                                  target=partial(ev.prepare_evaluation, on_start=lambda n: told.append(n),
+                                                 on_set=lambda n, ok: told.append((n, ok))))
     ev._await_pending("test", log.append)
-    assert order == ["test"] and told == [("test", True)] and ev._is_pending("variants")
+    assert order == ["test"] and told[:2] == ["test", ("test", True)] and ev._is_pending("variants")
     ev._await_pending("train", log.append)                  # nothing prepared for it: no wait
     assert not any("train" in ln for ln in log)
     release.set()
     ev._await_pending("variants", log.append)
     assert order == ["test", "variants"] and not ev._is_pending("variants")
+    assert told == ["test", ("test", True), "variants", ("variants", True)]     # each set started, then ended
     thread.join(30)
     assert not thread.is_alive() and ev._PENDING == {}
     monkeypatch.setattr(ev, "resolve_set", lambda cfg, name: 1 / 0)
@@ -311,10 +314,12 @@ def test_prepare_evaluation_starts_once_when_little_training_is_left(monkeypatch
     state's shapes, not its arrays (the next iteration donates them)."""
     from types import SimpleNamespace
     from mjx_morph.eval import evaluate as ev
-    started, asked, preparing = [], [], []
-    def prepare(cfg, model, like, names, episodes, log, on_set):
+    started, asked, preparing, between = [], [], [], []
+    def prepare(cfg, model, like, names, episodes, log, on_start, on_set):
         started.append((cfg, model, like, names, episodes))
         for name in names:
+            between.append(cb.preparing())
+            on_start(name)
             preparing.append(cb.preparing())
             on_set(name, name != "test")
     monkeypatch.setattr(ev, "prepare_evaluation", prepare)
@@ -333,6 +338,7 @@ def test_prepare_evaluation_starts_once_when_little_training_is_left(monkeypatch
     assert ev._PREPARING is None and cb.prepared == ["variants"]
     # the set being prepared and the seconds its preparation has run, one set after the other; none once it ended
     assert [list(p) for p in preparing] == [["test"], ["variants"]] and cb.preparing() == {}
+    assert between == [{}, {}]                  # none between one set's end and the next one's start
     assert all(0.0 <= s < 30.0 for p in preparing for s in p.values())
     assert asked == [100.0, 90.0, 80.0, 70.0, 60.0, 50.0, 40.0]              # iterations 20-26
     [(cfg, model, like, names, episodes)] = started

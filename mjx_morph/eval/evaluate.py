@@ -270,17 +270,20 @@ def _chunk(episodes: int, max_envs: int | None) -> int:
 def prepare_evaluation(cfg: RunConfig, model, like, sets: Sequence[str], episodes: int = 4,
                        episode_length: int | None = None, trace_steps: int = TRACE_STEPS,
                        log: Callable[[str], None] = print,
+                       on_start: Callable[[str], None] | None = None,
                        on_set: Callable[[str, bool], None] | None = None) -> list[str]:
     """Build the envs of `sets` and compile their sweeps ahead of an `evaluate_run` with the same `episodes`,
     `episode_length` and `trace_steps` (and no `max_envs`), for a train state shaped like `like` (`.params` and
     `.obs_rms`: arrays or jax.ShapeDtypeStruct). Meant for a background thread while the run trains
     (`PrepareEvaluation`); the sweepers are kept for the evaluate_run of this process, which waits for each set's
     preparation to end before it evaluates the set (`start_preparation`), not for the others. Errors are logged,
-    never raised: evaluate_run then does the work itself. `on_set(name, ok)` is called as each set ends. Returns the
-    sets prepared."""
+    never raised: evaluate_run then does the work itself. `on_start(name)` is called as each set's preparation
+    starts, `on_set(name, ok)` as it ends (the sets one after the other). Returns the sets prepared."""
     env_over = {"episode_length": int(episode_length)} if episode_length else {}
     done = []
     for name in sets:
+        if on_start is not None:
+            on_start(name)
         try:
             es = resolve_set(cfg, name)
         except Exception as e:             # noqa: BLE001 - the training goes on; evaluate_run redoes this set
@@ -392,16 +395,16 @@ class PrepareEvaluation(Callback):
         # below the training's priority: session 22 measured the training's iterations 15-24 s slower in all while
         # four runs on one host prepared the variants at the training's priority
         lower_thread_priority()
-        names = list(names)
 
-        def on_set(name: str, ok: bool) -> None:        # the sets are prepared one after the other
+        def on_start(name: str) -> None:
+            self._current = (name, time.monotonic())
+
+        def on_set(name: str, ok: bool) -> None:
+            self._current = None
             if ok:
                 self.prepared.append(name)
-            following = names[names.index(name) + 1:]
-            self._current = (following[0], time.monotonic()) if following else None
-        self._current = (names[0], time.monotonic()) if names else None
         try:
-            prepare_evaluation(cfg, model, like, names, episodes, log=log, on_set=on_set)
+            prepare_evaluation(cfg, model, like, names, episodes, log=log, on_start=on_start, on_set=on_set)
         finally:
             self._current = None
 
