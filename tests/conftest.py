@@ -5,7 +5,7 @@ shared with the CLI subprocesses the tests start: compilation is most of the sui
 on the 2-core CPU machine took 6.5 min instead of 13.8. A program is found there only if it lowers to the same text,
 and JAX's lowering depends on what the process traced before (its in-memory caches: after an evaluation, the smoke
 train step lowered with a few helper functions no longer shared, missed the cache and compiled again, 49 s): each
-test module, and each value built once per session, starts from empty in-memory caches (`fresh_jax`), so that a
+test module, and each value built once per session, starts from empty in-memory caches (`jax.clear_caches`), so that a
 program lowers as in a fresh process and is compiled once per suite."""
 from __future__ import annotations
 
@@ -38,15 +38,9 @@ os.environ.setdefault("MJX_MORPH_XLA_CACHE", str(ROOT / ".pytest_cache" / "xla")
 use_compile_cache(os.environ["MJX_MORPH_XLA_CACHE"], min_compile_s=1.0)
 
 
-def fresh_jax() -> None:
-    """Empty JAX's in-memory caches (traced functions, lowerings, executables), so that the programs traced next lower
-    as in a fresh process and find the ones compiled elsewhere in the persistent cache."""
-    jax.clear_caches()
-
-
 @pytest.fixture(autouse=True, scope="module")
 def _fresh_jax_per_module():
-    fresh_jax()
+    jax.clear_caches()      # the module's programs lower as in a fresh process (the module docstring says why)
 
 
 def smoke_config(*overrides: str):
@@ -66,7 +60,7 @@ def once_per_session(tmp_path_factory, name: str, build):
     with open(root / f"{name}.lock", "w") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)    # released when the file closes, also if build raises
         if not done.exists():
-            fresh_jax()
+            jax.clear_caches()          # lowered as in a fresh process, its programs are found by the others
             done.write_text(json.dumps(build(root)))
         return json.loads(done.read_text())
 

@@ -204,8 +204,7 @@ def test_demo_trains_evaluates_and_reports(tmp_path, capsys):
     """`make demo`'s program end to end, on the smoke settings (whose compiled train step the smoke runs share); its
     video is left to tests/test_render.py, which records and renders an episode the same way."""
     from experiments import demo
-    from conftest import fresh_jax
-    fresh_jax()         # lowered as in a fresh process, its train step is the smoke runs' (persistent cache)
+    jax.clear_caches()      # lowered as in a fresh process, its train step is the smoke runs' (persistent cache)
     d = demo.demo(["preset=smoke", f"run_dir={tmp_path / 'demo'}", "progress=false"], unseen=2,
                   episode_length=STEPS, video=False)
     out = capsys.readouterr().out
@@ -272,8 +271,8 @@ def test_an_evaluation_prepared_while_training_builds_and_compiles_nothing_after
 
 def test_an_evaluation_waits_for_its_own_sets_preparation_alone(monkeypatch):
     """start_preparation marks its sets pending before its thread starts; each set stops being pending as its
-    preparation ends (on_start told as it starts, on_set as it ends), so the evaluation of test70 waits for test70's and not for the variants'
-    still under way (session 28: 43-53 s). A failed preparation ends its sets too."""
+    preparation ends (on_start told as it starts, on_set as it ends), so the evaluation of test70 waits for test70's
+    and not for the variants' still under way (session 28: 43-53 s). A failed preparation ends its sets too."""
     import threading
     from mjx_morph.eval import evaluate as ev
     release, order, told, log = threading.Event(), [], [], []

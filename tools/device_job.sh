@@ -17,7 +17,8 @@
 #   copied to .gpu/ here, a fresh machine's first call starts from it (tools/xla_cache.py).
 # Example (three calls back to back: a machine left idle 30 s goes back, with runs/ and its checkpoints; so send
 # the chain's calls together, as one batch of tool calls that run one after another a few seconds apart: session 31
-# sent each after reading the last one's reply and lost two chains so, one on 4 GPUs and one on 1: ~1000 of its 1800 counted s):
+# sent each after reading the last one's reply and lost two chains so, one on 4 GPUs and one on 1, ~1000 of its
+# 1800 counted s):
 #   bash tools/device_job.sh fp32 python -m experiments.study ab_precision 'only=[fp32]' 'archs=[modumorph]' \
 #     'seeds=[0,1]' time_limit_min=8.7 -- progress=false
 #   bash tools/device_job.sh --continue fp32 python -m experiments.study ...    # the second and third calls
