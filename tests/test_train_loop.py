@@ -56,6 +56,8 @@ def test_smoke_run_writes_everything(full_run):
     assert entry["start_iteration"] == 0 and entry["device_kind"] == dev.device_kind
     assert entry["platform"] == dev.platform and entry["num_devices"] >= 1 and entry["processes"] == 1
     assert entry["started"].endswith("+00:00")                         # ISO time, UTC
+    assert entry["jax"] == jax.__version__ and entry["platform_version"] == dev.client.platform_version
+    assert len(entry["topology"]) == 16 and int(entry["topology"], 16) >= 0     # the cache key's device fingerprint
 
 
 def test_interrupted_and_resumed_run_ends_like_uninterrupted(full_run, exp, tmp_path):
@@ -73,6 +75,7 @@ def test_interrupted_and_resumed_run_ends_like_uninterrupted(full_run, exp, tmp_
     invocations = yaml.safe_load((d / "devices.yaml").read_text())  # the resume appended its own entry
     assert [e["start_iteration"] for e in invocations] == [0, 2]
     assert {e["device_kind"] for e in invocations} == {jax.devices()[0].device_kind}
+    assert len({(e["platform_version"], e["topology"]) for e in invocations}) == 1   # one machine: one cache key
 
 
 class CtrlC(Callback):

@@ -5,7 +5,9 @@
 
 A fresh machine compiles the train step for ~100-150 s in a lease's first call; the programs compiled in an earlier
 lease serve it when they travel (`.gpu/xla-cache.tar.gz`, carried). JAX reads an entry only when its key matches: the
-same program (the training code unchanged), JAX version, compiler options and GPU model; other entries are ignored.
+same program (the training code unchanged), JAX version, compiler options, GPU model, and the machine's platform
+version (CUDA, driver) and device topology; other entries are ignored. A one-GPU host's cache missed on a 4-GPU host
+in session 32 (each run's devices.yaml records these parts of the key; docs/benchmarks.md, "Session 32").
 The training programs go first (the train step's rollout and update, and the initial state: each 40-70 s of compilation
 that every GPU of a lease waits for before its first iteration), then the others (the evaluations' sweeps, ~2.4 MiB
 each on a GPU, mostly compiled while the runs train); within each, what this lease compiled first, oldest first, then

@@ -8,7 +8,9 @@
 
     <run_dir>/config_history.yaml  changes accepted on a resume (`allow_changes`), in order
     <run_dir>/devices.yaml         one entry per invocation (start or resume): when, from which iteration, on what
-                                   devices (platform, device_kind, num_devices, processes): wall times depend on it
+                                   devices (platform, device_kind, num_devices, processes): wall times depend on it;
+                                   and the machine's parts of JAX's compile-cache key (jax, platform_version,
+                                   topology): two machines share cached programs only where these agree
 
 Opening a run directory (`RunDir(...)`) writes nothing; `create()` makes the directory and writes config.yaml once
 the caller has validated everything else, so a failed start leaves no trace.
@@ -97,6 +99,22 @@ def matches_key(key: str, prefixes) -> bool:
     return any(key == p or key.startswith(p + ".") for p in prefixes)
 
 
+def cache_key_machine() -> dict:
+    """What of the machine goes into JAX's persistent compile-cache key besides the program and the compiler options
+    (jax/_src/cache_key.py): JAX's version, the backend's platform version (on a GPU, CUDA's and the driver's) and
+    the fingerprint of the devices' topology. A cache brought from another machine (tools/device_job.sh) serves only
+    where all three agree: session 32's 4-GPU host compiled afresh the programs a one-GPU host's cache held, with
+    the same device kind."""
+    devices = jax.devices()
+    out = {"jax": jax.__version__, "platform_version": str(devices[0].client.platform_version)}
+    try:
+        from jax._src.lib import xla_client      # not public: the same call cache_key.py makes; absent, left out
+        out["topology"] = f"{xla_client.get_topology_for_devices(devices).fingerprint():016x}"
+    except Exception:       # a backend without a serialisable topology (JAX then hashes the device kinds alone)
+        pass
+    return out
+
+
 class RunDir:
     def __init__(self, path: str | Path, config: Mapping | None = None, identity: tuple[str, ...] = (),
                  free: tuple[str, ...] = (), allow_changes: tuple[str, ...] = ()):
@@ -167,7 +185,7 @@ class RunDir:
         dev = jax.devices()[0]
         entry = {"started": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
                  "start_iteration": int(start_iteration), "platform": dev.platform, "device_kind": dev.device_kind,
-                 "num_devices": int(num_devices), "processes": jax.process_count()}
+                 "num_devices": int(num_devices), "processes": jax.process_count(), **cache_key_machine()}
         with (self.path / "devices.yaml").open("a") as fh:
             fh.write(yaml.safe_dump([entry], sort_keys=False))
 
