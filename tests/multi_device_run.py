@@ -43,8 +43,11 @@ def update_collectives(trainer: Trainer, ts) -> list[list]:
     return out
 
 
-def run(arch: str, devices: int, iters: int = 3, seed: int = 0, blocks: int | None = None):
-    trainer = toy_trainer(arch, devices, blocks=blocks)
+def run(arch: str, devices: int, iters: int = 3, seed: int = 0, blocks: int | None = None,
+        trainer: Trainer | None = None):
+    """`iters` iterations of the tiny config from `seed`; pass `trainer` (one of `toy_trainer(arch, devices,
+    blocks=blocks)`) to reuse its compiled functions instead of tracing and loading them again."""
+    trainer = trainer or toy_trainer(arch, devices, blocks=blocks)
     ts = trainer.init(jax.random.PRNGKey(seed))
     rows = []
     for _ in range(iters):
@@ -76,7 +79,7 @@ def main(n: int) -> None:
             ts = trainer.init(seed_keys([0, 1]))
             for _ in range(3):
                 ts, _ = trainer.iteration(ts)
-            alone = [one, run(arch, 1, seed=1, blocks=n)[0]]
+            alone = [one, run(arch, 1, seed=1, blocks=n, trainer=one_trainer)[0]]     # the same 1-device program
             out["seeds"] = {"mesh": dict(trainer.mesh.shape), "shards": len(ts.first.sharding.device_set),
                             "param_diff": max(float(np.abs(np.asarray(a) - np.asarray(b)).max())
                                               for i in range(2) for a, b in
