@@ -233,12 +233,14 @@ def test_an_evaluation_prepared_while_training_builds_and_compiles_nothing_after
                                                                                    monkeypatch):
     """prepare_evaluation (the study runs it in a background thread in training's last minutes) builds the env and
     compiles the sweep; the evaluate_run after it waits for it, then does neither, and its results equal those of an
-    evaluation from scratch. evaluate_run itself prepares each next set while the sets before it sweep."""
+    evaluation from scratch. evaluate_run itself prepares each next set while the sets before it sweep. On the rmomo
+    smoke run and the demo's 2 unseen robots: the same sweep programs as evaluated_runs' train set and
+    test_demo_trains_evaluates_and_reports' test set, which the persistent compilation cache then serves."""
     from collections import OrderedDict
     from mjx_morph.eval import evaluate as ev
     monkeypatch.setattr(ev, "_SWEEPERS", OrderedDict())          # nothing kept from the other tests
     d = tmp_path / "run"
-    shutil.copytree(evaluated_runs[1], d)
+    shutil.copytree(evaluated_runs[0], d)
     shutil.rmtree(d / "eval")
     run = load_run(d)
     kw = dict(episodes=2, episode_length=STEPS, trace_steps=STEPS)
@@ -253,18 +255,18 @@ def test_an_evaluation_prepared_while_training_builds_and_compiles_nothing_after
     assert prep[2].startswith("[mjx_morph] train: evaluation prepared while the run trained")
     assert "[mjx_morph] train: env and sweep prepared while the run trained" in log
     assert not any("building the env" in ln or "compilation" in ln for ln in log), log
-    first = json.loads((evaluated_runs[1] / "eval" / "train.json").read_text())
+    first = json.loads((evaluated_runs[0] / "eval" / "train.json").read_text())
     assert out["train"]["per_robot"] == first["per_robot"]
 
     # evaluate_run prepares the next set (its env build and compilation) while the sweeps of the one before run
     import dataclasses
     unseen = resolve_set(run.config, "test")
-    unseen = dataclasses.replace(unseen, robots=unseen.robots[:1])
+    unseen = dataclasses.replace(unseen, robots=unseen.robots[:2])      # the demo's (test_demo_trains_evaluates...)
     log.clear()
     out = evaluate_run(d, ["train", unseen], seed=0, zero_state_steps=0, log=log.append, **kw)
-    assert out["train"]["per_robot"] == first["per_robot"] and out["test"]["robots"] == 1
+    assert out["train"]["per_robot"] == first["per_robot"] and out["test"]["robots"] == 2
     at = lambda text: next(i for i, ln in enumerate(log) if text in ln)
-    assert at("test: building the env of 1 robots") < at("test: evaluation prepared while train's sweeps ran") \
+    assert at("test: building the env of 2 robots") < at("test: evaluation prepared while train's sweeps ran") \
         < at("test: env and sweep prepared while train's sweeps ran") < at("[mjx_morph] test (gen/test")
     assert not any("test:" in ln and "compilation included" in ln for ln in log), log
 
