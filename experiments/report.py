@@ -4,12 +4,15 @@
     python -m experiments.report runs=[runs/studies/train_size] out=reports/size      # a folder of run dirs
     python -m experiments.report runs=[runs] out=reports/all 'compare=[rmomo,metamorph]'
     python -m experiments.report runs=[results/paper_s26,results/paper_s28] out=reports/ft looks=2   # 2nd look
+    python -m experiments.report runs=[...] out=reports/all 'looks={ft/rmomo:5,rmemo:3}'   # looks per claim model
 
 Writes <out>/report.md with learning curves, zero-shot returns (train/test/variants), per-robot differences,
 whether the paper's claims are reproduced (claims.csv), reward per timestep, training-set-size and
 single-context-feature figures (PNG) and tables (also as CSV); what could not be drawn is listed under "Missing".
 `looks=k`: the claims' comparisons were looked at k times as seeds came in (this report the k-th); their CIs are then
-at 1 - 0.05 / k and a claim holds at p < 0.025 / k (Bonferroni).
+at 1 - 0.05 / k and a claim holds at p < 0.025 / k (Bonferroni). Where the models' comparisons were looked at
+different numbers of times, `looks={<model>: k, <task>/<model>: k, ...}` gives each its own (unlisted: one look;
+a model is the claim's, rmomo or rmemo).
 See mjx_morph.eval.report.
 """
 from __future__ import annotations
@@ -18,7 +21,7 @@ import dataclasses
 import sys
 from typing import Any
 
-from omegaconf import MISSING
+from omegaconf import MISSING, DictConfig, OmegaConf
 
 from mjx_morph.eval.report import build_report
 from mjx_morph.eval.runs import find_run_dirs
@@ -34,8 +37,9 @@ class ReportConfig:
     compare: Any = dataclasses.field(default_factory=lambda: ["rmomo", "modumorph"])
                                         # per-robot difference a - b; a task lacking one: its first two archs
     title: str = "mjx_morph report"
-    looks: int = 1                      # how many times the claims' comparisons were looked at as seeds came in:
-                                        # their CIs at 1 - 0.05 / looks, reproduced at p < 0.025 / looks (Bonferroni)
+    looks: Any = 1                      # how many times the claims' comparisons were looked at as seeds came in:
+                                        # their CIs at 1 - 0.05 / looks, reproduced at p < 0.025 / looks (Bonferroni);
+                                        # or per claim model, {rmomo: 5, incline/rmemo: 2} (unlisted: 1)
 
 
 register("report_schema", ReportConfig)
@@ -49,7 +53,8 @@ def report(c: ReportConfig) -> None:
         raise ValueError("no run directories given")
     print(f"[mjx_morph] building the report of {len(dirs)} runs into {c.out} (figures, tables, report.md)...",
           flush=True)
-    path = build_report(dirs, c.out, compare=[str(x) for x in compare], title=str(c.title), looks=c.looks)
+    looks = OmegaConf.to_container(c.looks) if isinstance(c.looks, DictConfig) else c.looks
+    path = build_report(dirs, c.out, compare=[str(x) for x in compare], title=str(c.title), looks=looks)
     print(f"[mjx_morph] report: {path} ({len(dirs)} runs)")
 
 

@@ -17,7 +17,7 @@ import yaml
 from scipy import stats
 
 from mjx_morph.eval import plots
-from mjx_morph.eval.report import CLAIMS, build_report
+from mjx_morph.eval.report import CLAIMS, Looks, build_report
 from mjx_morph.eval.runs import NotARunDir, Run, classify, find_run_dirs, name_variants
 from mjx_morph.eval.stats import TASK_RANGES, claim_test, furthest_mean_curve, mean_curve
 from mjx_morph.unimal.variants import CHANGE_TYPES
@@ -115,7 +115,7 @@ def _csv(path: Path) -> list[dict]:
 
 EXPECTED_PNGS = ["learning_curve_ft", "learning_curve_incline", "returns_ft", "returns_incline",
                  "returns_pooled_normalised", "robot_diff_ft", "robot_diff_incline", "robot_diff_pooled",
-                 "reward_per_step_ft", "reward_per_step_incline", "train_size_ft", "context_features_ft"]
+                 "reward_per_step_ft", "reward_per_step_incline", "train_size_ft", "context_features_ft", "claims"]
 
 
 def test_figures_exist_are_pngs_and_linked(report):
@@ -406,6 +406,52 @@ def test_claims_verdicts_on_clear_runs(tmp_path):
     assert "98.75% CI from Welch's t" in md and "95% CI from Welch's t" not in md
     with pytest.raises(ValueError, match="looks=0"):
         build_report([tmp_path / "runs"], tmp_path / "out0", looks=0)
+
+
+def test_looks_per_claim_model_and_task():
+    """looks as a mapping: "<task>/<model>" before "<model>" before one look; keys that name no claim's model or no
+    task, and counts that are not whole numbers >= 1, are refused naming the key."""
+    lk = Looks.parse({"rmomo": 5, "incline/rmomo": 3, "ft/rmemo": 2})
+    assert (lk.of("ft", "rmomo"), lk.of("incline", "rmomo"), lk.of("ft", "rmemo"), lk.of("incline", "rmemo")) == (
+        5, 3, 2, 1)
+    assert Looks.parse(4).of("csr", "rmemo") == 4 and Looks.parse(lk) is lk
+    for bad, match in (({"modumorph": 2}, re.escape("key 'modumorph': expected a claim's model (rmomo, rmemo)")),
+                       ({"mars/rmomo": 2}, "key 'mars/rmomo'.*with a task of ft, incline"),
+                       ({"ft/rmomo/x": 2}, "key 'ft/rmomo/x'"), ({"rmomo": 0}, "key 'rmomo': looks=0"),
+                       ({"rmemo": 2.5}, "key 'rmemo': looks=2.5"), (0, "looks=0")):
+        with pytest.raises(ValueError, match=match):
+            Looks.parse(bad)
+
+
+def test_claims_looked_at_a_different_number_of_times_per_model(tmp_path):
+    """looks={rmemo: 3} through the command line: R-MeMo's claims at Bonferroni's 3-look CI, R-MoMo's at one look's,
+    each row naming its looks, the same numbers as one report per model; the claims figure drawn; a bad key refused
+    before anything is written."""
+    levels = {"rmemo": (1500, 1600), "metamorph": (1000, 1100), "rmomo": (1000, 1150), "modumorph": (1000, 1100)}
+    for a, lv in levels.items():
+        for s in range(3):
+            make_run(tmp_path / "runs", f"ft-{a}-s{s}", arch=a, seed=s, returns=lv, metrics=False)
+    out = tmp_path / "out"
+    p = subprocess.run([sys.executable, "-m", "experiments.report", f"runs=[{tmp_path / 'runs'}]", f"out={out}",
+                        "looks={rmemo:3}"], cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert p.returncode == 0, p.stderr
+    build_report([tmp_path / "runs"], tmp_path / "one")
+    build_report([tmp_path / "runs"], tmp_path / "three", looks=3)
+    rows, one, three = (_claim_rows(d) for d in (out, tmp_path / "one", tmp_path / "three"))
+    assert len(rows) == len(CLAIMS)
+    for key, r in rows.items():
+        ref = three[key] if key[1] == "rmemo" else one[key]
+        assert r["looks"] == ("3" if key[1] == "rmemo" else "1")
+        for col in ("ci_level", "ci95_low", "ci95_high", "verdict", "p_one_sided", "seeds_for_power"):
+            assert r[col] == ref[col], (key, col)
+    md = (out / "report.md").read_text()
+    assert "difference [CI at 1 − 0.05 / looks]" in md and "| looks |" in md and "](claims.png)" in md
+    assert (out / "claims.png").read_bytes()[:8] == PNG_MAGIC
+    assert "| looks |" not in (tmp_path / "three" / "report.md").read_text()      # one number: in the header
+    bad = subprocess.run([sys.executable, "-m", "experiments.report", f"runs=[{tmp_path / 'runs'}]",
+                          f"out={tmp_path / 'bad'}", "looks={modumorph:2}"], cwd=ROOT, capture_output=True, text=True,
+                         timeout=300)
+    assert bad.returncode != 0 and "key 'modumorph'" in bad.stderr and not (tmp_path / "bad").exists()
 
 
 def test_mean_curve_band():

@@ -218,3 +218,43 @@ def errorbar_lines(series: Mapping[str, tuple], out: str | Path, title: str = ""
     fig.tight_layout()
     _legend(ax, 9)
     return _save(fig, out)
+
+
+#: the colour of each claim verdict (mjx_morph.eval.stats): reproduced, not reproduced, and every inconclusive kind
+VERDICT_COLORS = {"reproduced": "tab:green", "not reproduced": "tab:red"}
+
+
+def intervals(rows: Sequence[Mapping], out: str | Path, title: str = "", xlabel: str = "",
+              refs: Mapping[float, str] | None = None) -> Path:
+    """A forest plot: one row per `rows[i]` (top to bottom) with keys label, value, lo, hi (an interval; nan: the point
+    alone), verdict (its colour, VERDICT_COLORS, grey otherwise) and note (written right of the axes); `refs[x] =
+    label`: vertical reference lines, solid at 0 and dashed elsewhere, named in the legend where labelled."""
+    n = len(rows)
+    fig, ax = plt.subplots(figsize=(10.0, 1.2 + 0.36 * max(n, 1)))
+    y = np.arange(n)[::-1]
+    for yi, r in zip(y, rows):
+        c = VERDICT_COLORS.get(r["verdict"], "0.45")
+        lo, hi = float(r["lo"]), float(r["hi"])
+        if np.isfinite(lo) and np.isfinite(hi):
+            ax.plot([lo, hi], [yi, yi], color=c, lw=2.2, solid_capstyle="butt")
+        ax.plot([r["value"]], [yi], "o", color=c, ms=6)
+        ax.annotate(r.get("note", ""), xy=(1.01, yi), xycoords=("axes fraction", "data"), va="center", fontsize=8)
+    handles = []
+    for x, label in (refs or {}).items():
+        line = ax.axvline(x, color="0.2" if x == 0 else "0.5", lw=1.0, ls="-" if x == 0 else "--", label=label)
+        if label:
+            handles.append(line)
+    for v, c in (*VERDICT_COLORS.items(), ("inconclusive", "0.45")):
+        if any(VERDICT_COLORS.get(r["verdict"], "0.45") == c for r in rows):
+            handles.append(plt.Line2D([], [], color=c, marker="o", lw=2.2, label=v))
+    ax.set_yticks(y)
+    ax.set_yticklabels([r["label"] for r in rows], fontsize=8)
+    ax.set_ylim(-0.7, n - 0.3)
+    ax.set_xlabel(xlabel)
+    ax.set_title(title)
+    ax.grid(axis="x", alpha=0.3)
+    fig.tight_layout()
+    if handles:
+        fig.legend(handles=handles, loc="lower center", bbox_to_anchor=(0.5, 1.0), ncol=len(handles), fontsize=8,
+                   frameon=False)
+    return _save(fig, out)

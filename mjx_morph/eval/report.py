@@ -33,7 +33,10 @@ the claim takes the evaluations at the steps both models have most seeds at (`st
 the others under "Missing"; the per-robot differences take the same evaluations (the returns table and its bars
 pool every step, and say so). The training claims are also tested on the learning curves (set "training",
 `TRAINING_CLAIMS`: each seed's last ~5% of iterations in metrics.csv, runs at the furthest env steps; where some
-runs stopped short, also set "training_all": every run, at the env steps all of them reached).
+runs stopped short, also set "training_all": every run, at the env steps all of them reached). A comparison looked
+at k times as seeds came in takes Bonferroni's bar (`stats.claim_test`'s looks); `Looks` gives each claim model, or
+task and model, its own k, so one report over every run on file gives every claim its verdict; `claims.png` draws
+them all (difference in % of the baseline, CI, verdict).
 
 The report is the sections of `SECTIONS`, in order: each is a function (document, context) that adds figures
 (under its heading), tables and missing items to the `document.Document`; `build_report` reads the runs, makes the
@@ -48,7 +51,7 @@ import os
 from collections import defaultdict
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Iterable, Sequence
+from typing import Callable, Iterable, Mapping, Sequence
 
 import numpy as np
 import yaml
@@ -79,6 +82,14 @@ class Claim:
     kind: str
     text: str
 
+    @property
+    def short(self) -> str:
+        """The claim in a few words, for a figure's labels: "R-MoMo > ModuMorph" ("≥": at least as well)."""
+        return f"{PAPER_NAMES[self.model]} {'>' if self.kind == 'better' else '≥'} {PAPER_NAMES[self.baseline]}"
+
+
+#: The paper's names of the architectures the claims compare.
+PAPER_NAMES = {"metamorph": "MetaMorph", "modumorph": "ModuMorph", "rmemo": "R-MeMo", "rmomo": "R-MoMo"}
 
 CLAIMS: tuple[Claim, ...] = (
     Claim("rmomo", "modumorph", "train", "level", "R-MoMo trains at least as well as ModuMorph"),
@@ -90,6 +101,47 @@ CLAIMS: tuple[Claim, ...] = (
     Claim("rmemo", "metamorph", "variants", "better", "R-MeMo beats MetaMorph zero-shot on dynamics/kinematics "
                                                       "variants"),
 )
+
+#: The models the claims are about; `Looks` keys name them.
+CLAIM_MODELS: tuple[str, ...] = tuple(dict.fromkeys(c.model for c in CLAIMS))
+
+
+@dataclass(frozen=True)
+class Looks:
+    """How many times each claim's comparison has been looked at as seeds came in (`stats.claim_test`'s `looks`):
+    `per["<task>/<model>"]` for one task's claims of a model, else `per["<model>"]` for its claims on every task,
+    else `default`. A report over several tasks and models, each looked at its own number of times, then gives every
+    claim its own Bonferroni bar: `Looks.parse({"ft/rmomo": 5, "rmemo": 3})`."""
+    default: int = 1
+    per: Mapping[str, int] = field(default_factory=dict)
+
+    @classmethod
+    def parse(cls, looks) -> "Looks":
+        """From a whole number (every claim) or a mapping of "<model>" / "<task>/<model>" keys to whole numbers
+        (unlisted claims: one look); ValueError naming the key and what was expected."""
+        if isinstance(looks, Looks):
+            return looks
+        if not isinstance(looks, Mapping):
+            ci_level(looks)
+            return cls(int(looks))
+        per = {}
+        for key, k in looks.items():
+            parts = str(key).split("/")
+            task, model = (None, parts[0]) if len(parts) == 1 else (parts[0], parts[-1])
+            if len(parts) > 2 or model not in CLAIM_MODELS or (task is not None and task not in TASK_ORDER):
+                raise ValueError(f"looks: key {key!r}: expected a claim's model ({', '.join(CLAIM_MODELS)}) or "
+                                 f"<task>/<model> with a task of {', '.join(TASK_ORDER)}, e.g. ft/rmomo")
+            try:
+                ci_level(k)
+            except ValueError as e:
+                raise ValueError(f"looks: key {key!r}: {e}") from None
+            per[str(key)] = int(k)
+        return cls(1, per)
+
+    def of(self, task: str, model: str) -> int:
+        """The looks of `model`'s claims on `task`."""
+        return self.per.get(f"{task}/{model}", self.per.get(model, self.default))
+
 
 #: The training claims read off the learning curves too (set "training"): each seed's final training return, the mean
 #: episode return of its last ~5% of iterations (metrics.csv), for the runs of both models that reached the furthest
@@ -108,7 +160,7 @@ class ReportContext:
     tasks: list[str]                                  # the runs' tasks, in report order
     main: dict[str, dict[str, list[Run]]]             # task -> arch (in report order) -> its main runs (seeds)
     compare: tuple[str, ...]                          # the architectures to compare robot by robot
-    looks: int = 1                                    # how many times the claims' comparisons were looked at
+    looks: Looks = field(default_factory=Looks)       # how many times each claim's comparison was looked at
     param_counts: dict[str, int] = field(default_factory=dict)   # param_count's memo, for this report only
 
 
@@ -420,7 +472,7 @@ def _interval(d: float, lo: float, hi: float) -> str:
 
 def _claims(doc: Document, ctx: ReportContext) -> None:
     """The CLAIMS table: each claim per task with both sides' main runs evaluated on its set; the rest missing."""
-    rows, md = [], []
+    rows, md, tested = [], [], []
     claim_archs = {a for c in CLAIMS for a in (c.model, c.baseline)}
     for t in ctx.tasks:
         main, untested = ctx.main[t], []
@@ -442,16 +494,18 @@ def _claims(doc: Document, ctx: ReportContext) -> None:
                 untested.append(f"{c.text} ({set_name}: "
                                 + (why or f"{c.model} {len(a)}, {c.baseline} {len(b)} seeds") + ")")
                 continue
-            r = claim_test(a, b, c.kind, looks=ctx.looks)
+            r = claim_test(a, b, c.kind, looks=ctx.looks.of(t, c.model))
             rows.append([t, c.model, c.baseline, c.text, c.kind, set_name, at, r.model_seeds, r.baseline_seeds,
                          r.model_mean, r.baseline_mean, r.difference, r.ci_low, r.ci_high, r.margin, r.relative,
-                         r.verdict, r.p_value, r.seeds_for_power, r.level])
+                         r.verdict, r.p_value, r.seeds_for_power, r.level, r.looks])
             point = "to" if set_name in (TRAINING, TRAINING_ALL) else "at"
             label = f"{set_name} {point} {at / 1e6:.1f} M steps" if math.isfinite(at) else set_name
             md.append([t, c.text, label, f"{r.model_seeds}/{r.baseline_seeds}", fmt(r.model_mean),
                        fmt(r.baseline_mean), _interval(r.difference, r.ci_low, r.ci_high),
                        f"{r.relative:+.1f}%" if math.isfinite(r.relative) else "–", r.verdict,
-                       _p(r.p_value), f"{r.seeds_for_power:.0f}" if math.isfinite(r.seeds_for_power) else "–"])
+                       _p(r.p_value), f"{r.seeds_for_power:.0f}" if math.isfinite(r.seeds_for_power) else "–",
+                       r.looks])
+            tested.append((t, c, label, r))
         for arch in sorted(claim_archs & set(main)):
             for seed, paths in repeated_seeds(main[arch]).items():
                 doc.missing.append(f"{t}, {arch}: {len(paths)} runs of seed {seed} ({', '.join(paths)}) count as one "
@@ -463,24 +517,35 @@ def _claims(doc: Document, ctx: ReportContext) -> None:
                                + (f" (A/B arms are not compared: {'; '.join(arms)})" if arms else ""))
     if rows:
         m = f"{100 * CLAIM_MARGIN:g}%"
-        level, bar = f"{100 * ci_level(ctx.looks):.4g}%", f"{0.025 / ctx.looks:.4g}"
-        looked = ("" if ctx.looks == 1 else
-                  f" The comparisons were looked at {ctx.looks} times as seeds came in (looks={ctx.looks}): the CIs "
-                  f"are at {level} and a claim is reproduced at p < 0.025 / {ctx.looks} = {bar} (Bonferroni), so that "
-                  "the looks together keep one look's 2.5% error rate.")
+        ks = sorted({r[-1] for r in rows})
+        if len(ks) == 1:                         # one number of looks: named once, in the header and the note
+            k = ks[0]
+            level, bar = f"{100 * ci_level(k):.4g}% CI", f"{0.025 / k:.4g}"
+            looked = ("" if k == 1 else
+                      f" The comparisons were looked at {k} times as seeds came in (looks={k}): the CIs are at "
+                      f"{100 * ci_level(k):.4g}% and a claim is reproduced at p < 0.025 / {k} = {bar} (Bonferroni), so "
+                      "that the looks together keep one look's 2.5% error rate.")
+            md = [r[:-1] for r in md]
+            looks_header = []
+        else:                                    # each claim its own (the column looks)
+            level, bar = "CI at 1 − 0.05 / looks", "0.025 / looks"
+            looked = (" Each comparison was looked at as many times as seeds came in as its column looks says: its CI "
+                      "is at 1 − 0.05 / looks and it is reproduced at p < 0.025 / looks (Bonferroni), so that the "
+                      "looks together keep one look's 2.5% error rate.")
+            looks_header = ["looks"]
         doc.table("Claims", "claims",
                   ["task", "model", "baseline", "claim", "kind", "set", "env_steps", "model_seeds", "baseline_seeds",
                    "model_mean", "baseline_mean", "difference", "ci95_low", "ci95_high", "margin",
-                   "relative_difference_pct", "verdict", "p_one_sided", "seeds_for_power", "ci_level"], rows,
+                   "relative_difference_pct", "verdict", "p_one_sided", "seeds_for_power", "ci_level", "looks"], rows,
                   ["task", "claim", "set", "seeds (model/baseline)", "model mean", "baseline mean",
-                   f"difference [{level} CI]", "relative difference", "verdict", "p (one-sided)",
-                   f"seeds per side for {100 * CLAIM_POWER:g}% power"], md,
+                   f"difference [{level}]", "relative difference", "verdict", "p (one-sided)",
+                   f"seeds per side for {100 * CLAIM_POWER:g}% power", *looks_header], md,
                   note="per seed, the set's mean return over robots, of the evaluations at the env steps named (where "
                        "a model's seeds were evaluated at different steps, those at the steps both models have most "
                        "seeds at; the others are named under Missing) (set 'training': the mean episode return of "
                        "the last ~5% of iterations in metrics.csv, of the runs that reached the furthest env steps; "
                        "'training_all': of every run, up to the env steps that all of them reached); "
-                       f"difference of the means over seeds, model − baseline, {level} CI from Welch's t; "
+                       f"difference of the means over seeds, model − baseline, {level} from Welch's t; "
                        f"margin m = {m} of the baseline's mean. 'beats': reproduced if the CI lies above 0, not "
                        "reproduced if below m; 'at least as well': reproduced if above −m, not reproduced if below "
                        "0; otherwise inconclusive. p: Welch's one-sided p-value against the claim's bound (0 or −m): "
@@ -490,6 +555,26 @@ def _claims(doc: Document, ctx: ReportContext) -> None:
                        f"{100 * CLAIM_POWER:g}% power: how many seeds of each would reproduce the claim that often if "
                        "the observed difference and seed spreads held (normal approximation; – where the difference "
                        "does not clear the claim's bound)." + looked)
+        _claims_figure(doc, tested, level)
+
+
+def _claims_figure(doc: Document, tested: list, level: str) -> None:
+    """Every tested claim's difference in percent of its baseline's mean, with its CI, coloured by verdict."""
+    items = []
+    for t, c, label, r in tested:
+        scale = 100 / abs(r.baseline_mean) if r.baseline_mean else math.nan
+        seeds = f"{r.model_seeds}/{r.baseline_seeds} seeds"
+        items.append(dict(label=f"{t}: {c.short} ({label})", value=r.relative, lo=r.ci_low * scale,
+                          hi=r.ci_high * scale, verdict=r.verdict,
+                          note=f"{seeds}, p {_p(r.p_value)}" + (f", {r.looks} looks" if r.looks > 1 else "")))
+    if not any(math.isfinite(i["value"]) for i in items):
+        return
+    bound = f"−{100 * CLAIM_MARGIN:g}%: the 'at least as well' bound"
+    p = plots.intervals(items, doc.out / "claims.png", title="The paper's claims: model − baseline",
+                        xlabel="difference in % of the baseline's mean", refs={0.0: "", -100 * CLAIM_MARGIN: bound})
+    doc.figure(p, f"Each claim's difference of the seed means, model − baseline, in % of the baseline's mean, with "
+                  f"its {level} (Welch, over seeds), coloured by verdict: 'beats' is reproduced where the CI lies "
+                  f"above 0, 'at least as well' where it lies above −{100 * CLAIM_MARGIN:g}% (claims.csv).")
 
 
 def _eval_claim_sides(doc: Document, task: str, main: dict[str, list[Run]], c: Claim) -> tuple:
@@ -707,11 +792,13 @@ SECTIONS: tuple[tuple[str, Callable[[Document, ReportContext], None]], ...] = (
 
 
 def build_report(run_dirs: Sequence[str | Path], out: str | Path,
-                 compare: Sequence[str] = DEFAULT_COMPARE, title: str = "mjx_morph report", looks: int = 1) -> Path:
+                 compare: Sequence[str] = DEFAULT_COMPARE, title: str = "mjx_morph report",
+                 looks: int | Mapping[str, int] = 1) -> Path:
     """Read the runs, write figures, tables and `out/report.md`; returns the path of report.md. `run_dirs` may
     name directories holding run directories (see runs.find_run_dirs). `looks`: how many times the claims'
-    comparisons were looked at as seeds came in (their CIs and verdicts corrected for it, `stats.claim_test`)."""
-    ci_level(looks)                     # a bad value fails before anything is read or written
+    comparisons were looked at as seeds came in (their CIs and verdicts corrected for it, `stats.claim_test`): one
+    number for every claim, or per model / task and model (`Looks.parse`)."""
+    looks = Looks.parse(looks)          # a bad value fails before anything is read or written
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     doc = Document(out)
@@ -737,7 +824,7 @@ def build_report(run_dirs: Sequence[str | Path], out: str | Path,
     tasks = _order_tasks(r.task for r in runs)
     main = {t: {a: [r for r in runs if r.task == t and r.name == a and r.kind == "main"]
                 for a in _order_archs(r.name for r in runs if r.task == t and r.kind == "main")} for t in tasks}
-    ctx = ReportContext(runs, tasks, main, tuple(compare) if compare else DEFAULT_COMPARE, looks=int(looks))
+    ctx = ReportContext(runs, tasks, main, tuple(compare) if compare else DEFAULT_COMPARE, looks=looks)
     for heading, section in SECTIONS:
         doc.section(heading)
         section(doc, ctx)
