@@ -7,7 +7,8 @@
     python -m experiments.report runs=[...] out=reports/all 'looks={ft/rmomo:5,rmemo:3}'   # looks per claim model
 
 Writes <out>/report.md with learning curves, zero-shot returns (train/test/variants), per-robot differences,
-whether the paper's claims are reproduced (claims.csv), reward per timestep, training-set-size and
+whether the paper's claims are reproduced (claims.csv, claims.png), the seeds' spread in training as it goes on
+(seed_spread.csv), reward per timestep, training-set-size and
 single-context-feature figures (PNG) and tables (also as CSV); what could not be drawn is listed under "Missing".
 `looks=k`: the claims' comparisons were looked at k times as seeds came in (this report the k-th); their CIs are then
 at 1 - 0.05 / k and a claim holds at p < 0.025 / k (Bonferroni). Where the models' comparisons were looked at

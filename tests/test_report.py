@@ -702,6 +702,20 @@ def test_training_claim_reads_the_learning_curves_of_runs_that_reached_the_end(t
     assert float(r["baseline_mean"]) == pytest.approx(np.mean(b))
     assert r["verdict"] == _verdict_ref(a, b, "level")[0]
     assert f"| training_all to {cut / 1e6:.1f} M steps | 2/3 |" in text
+    # the seeds' spread in training at 1/4 ... 4/4 of the env steps every run reached (the one cut short's end)
+    spread = {(r["arch"], float(r["env_steps"])): r for r in _csv(tmp_path / "out" / "seed_spread.csv")}
+    groups = {"rmomo": [runs[("rmomo", s)] for s in (0, 1)],
+              "modumorph": [runs[("modumorph", 0)], runs[("modumorph", 1)], short]}
+    assert len(spread) == 8
+    for arch, dirs in groups.items():
+        cells = []
+        for f in (0.25, 0.5, 0.75, 1.0):
+            v = np.array([up_to(d, f * cut) for d in dirs])
+            row = spread[(arch, f * cut)]
+            assert int(row["seeds"]) == len(dirs) and float(row["mean_train_return"]) == pytest.approx(v.mean())
+            assert float(row["sd_over_mean"]) == pytest.approx(v.std(ddof=1) / abs(v.mean()))
+            cells.append(f"{v.std(ddof=1) / abs(v.mean()):.2f}")
+        assert f"| ft | {arch} | {len(dirs)} | {cut:,.0f} | " + " | ".join(cells) + " |" in text, cells
 
 
 def test_pooled_returns_take_only_the_tasks_every_architecture_has(tmp_path):

@@ -577,6 +577,47 @@ def _claims_figure(doc: Document, tested: list, level: str) -> None:
                   f"above 0, 'at least as well' where it lies above −{100 * CLAIM_MARGIN:g}% (claims.csv).")
 
 
+#: Where the seed-spread table reads the learning curves: these fractions of the env steps every main run of a task
+#: reached.
+SPREAD_POINTS = (0.25, 0.5, 0.75, 1.0)
+
+
+def _seed_spread(doc: Document, ctx: ReportContext) -> None:
+    """How widely the seeds of each main group spread in training, and whether that narrows as they learn: the
+    standard deviation over seeds of the training return (`Run.train_return`, as the training claims read it) over
+    its mean, at SPREAD_POINTS of the env steps every main run of the task reached. The power a claim has at a point
+    of the schedule goes with this spread."""
+    rows, md = [], []
+    for t in ctx.tasks:
+        reached = [r.final_steps for runs in ctx.main[t].values() for r in runs
+                   if math.isfinite(r.final_train_return())]
+        if not reached:
+            continue
+        shared = min(reached)
+        for arch, runs in ctx.main[t].items():
+            cells = []
+            for f in SPREAD_POINTS:
+                vals = np.asarray([v for v in seed_train_means(runs, f * shared) if math.isfinite(v)])
+                if vals.size < 2:
+                    break
+                mean, sd = float(vals.mean()), float(vals.std(ddof=1))
+                rel = sd / abs(mean) if mean else math.nan
+                rows.append([t, arch, f * shared, vals.size, mean, sd, rel])
+                cells.append(fmt(rel, 2))
+            if len(cells) == len(SPREAD_POINTS):
+                md.append([t, arch, rows[-1][3], fmt_steps(shared), *cells])
+    if rows:
+        doc.table("Seed spread in training", "seed_spread",
+                  ["task", "arch", "env_steps", "seeds", "mean_train_return", "sd_over_seeds", "sd_over_mean"], rows,
+                  ["task", "arch", "seeds", "steps every run reached", *(f"sd / mean at {100 * f:g}%"
+                                                                         for f in SPREAD_POINTS)], md,
+                  note="each seed's training return (the mean episode return of the last ~5% of the iterations up to "
+                       "the point, as the training claims read it), its standard deviation over seeds divided by "
+                       "the mean, at fractions of the env steps every main run of the task reached; main runs with "
+                       "2 or more seeds. A spread that narrows as training goes on makes later comparisons need fewer "
+                       "seeds.")
+
+
 def _eval_claim_sides(doc: Document, task: str, main: dict[str, list[Run]], c: Claim) -> tuple:
     """(claim, set, model's seed means, baseline's, env steps evaluated (nan: the files do not say), why untested or
     None) of an eval-set claim: the evaluations at the env steps `common_eval_steps` picks; those at other steps are
@@ -783,6 +824,7 @@ SECTIONS: tuple[tuple[str, Callable[[Document, ReportContext], None]], ...] = (
     ("Returns", _returns),
     ("Per-robot differences", _robot_differences),
     ("Claims", _claims),
+    ("Seed spread", _seed_spread),
     ("Reward per timestep", _reward_per_step),
     ("Training-set size", _train_size),
     ("Single context feature", _context_features),
