@@ -22,7 +22,7 @@ import dataclasses
 import sys
 from typing import Any
 
-from omegaconf import MISSING, DictConfig, OmegaConf
+from omegaconf import MISSING
 
 from mjx_morph.eval.report import build_report
 from mjx_morph.eval.runs import find_run_dirs
@@ -54,8 +54,7 @@ def report(c: ReportConfig) -> None:
         raise ValueError("no run directories given")
     print(f"[mjx_morph] building the report of {len(dirs)} runs into {c.out} (figures, tables, report.md)...",
           flush=True)
-    looks = OmegaConf.to_container(c.looks) if isinstance(c.looks, DictConfig) else c.looks
-    path = build_report(dirs, c.out, compare=[str(x) for x in compare], title=str(c.title), looks=looks)
+    path = build_report(dirs, c.out, compare=[str(x) for x in compare], title=str(c.title), looks=c.looks)
     print(f"[mjx_morph] report: {path} ({len(dirs)} runs)")
 
 

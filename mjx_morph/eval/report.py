@@ -517,7 +517,7 @@ def _claims(doc: Document, ctx: ReportContext) -> None:
                                + (f" (A/B arms are not compared: {'; '.join(arms)})" if arms else ""))
     if rows:
         m = f"{100 * CLAIM_MARGIN:g}%"
-        ks = sorted({r[-1] for r in rows})
+        ks = sorted({r.looks for *_, r in tested})
         if len(ks) == 1:                         # one number of looks: named once, in the header and the note
             k = ks[0]
             level, bar = f"{100 * ci_level(k):.4g}% CI", f"{0.025 / k:.4g}"
