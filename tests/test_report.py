@@ -25,6 +25,7 @@ from mjx_morph.unimal.variants import CHANGE_TYPES
 ROOT = Path(__file__).resolve().parents[1]
 TRAIN = [f"train-{i:03d}" for i in range(100)]
 TEST = [f"test-{i:02d}" for i in range(12)]
+VAL = [f"val-{i:02d}" for i in range(8)]
 VARIANTS = [f"{b}_{c}_{k}" for b in TRAIN[:3] for c in CHANGE_TYPES for k in range(2)]
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
@@ -77,7 +78,7 @@ def make_run(root: Path, name: str, task="ft", arch="rmomo", seed=0, num_robots=
             for it in range(1, iters + 1):
                 wall = 30.0 if it == 1 else float(rng.uniform(1, 3))
                 w.writerow([it, it * 1000, 10 * it + rng.normal(0, 5), 100 + it, wall, 1000 / wall, 2000, 2000, 8])
-    names = {"train": TRAIN[: num_robots or 100], "test": TEST, "variants": VARIANTS}
+    names = {"train": TRAIN[: num_robots or 100], "test": TEST, "val": VAL, "variants": VARIANTS}
     per = {}
     for tag in evals:
         pr = {k: float(rng.uniform(*returns)) for k in names[tag]}
@@ -582,6 +583,39 @@ def test_variants_of_an_architecture_are_reported_apart(tmp_path):
     # claims compare only the groups named by the architecture alone
     assert "(A/B arms are not compared: rmomo, scale_after_cell=null; rmomo, scale_after_cell=true)" in md
     assert not (tmp_path / "out" / "claims.csv").exists()
+
+
+def test_the_arm_chosen_on_val_and_whether_the_seeds_separate_it(tmp_path):
+    """"Chosen on val" (the paper's rule for the KL threshold): per task and architecture with two or more arms
+    that evaluated val, the arm with the higher mean over seeds of the seeds' mean val return, its margin over the
+    runner-up and Welch's two-sided p over seeds; an architecture with one arm, or arms without val, gets no row."""
+    root = tmp_path / "runs"
+    seeds = {}
+    for arm, kl, returns in (("kl003", 0.03, (400, 900)), ("kl005", 0.05, (500, 1200))):
+        for seed in (0, 1, 2):
+            d, per = make_run(root, f"ft-modumorph-{arm}-s{seed}", arch="modumorph", seed=seed, evals=("val", "test"),
+                              metrics=False, returns=returns)
+            cfg = yaml.safe_load((d / "config.yaml").read_text())
+            cfg["ppo"] = {"kl_threshold": kl}
+            (d / "config.yaml").write_text(yaml.safe_dump(cfg))
+            seeds.setdefault(f"modumorph, kl_threshold={kl}", []).append(np.mean(list(per["val"].values())))
+    make_run(root, "ft-rmomo-s0", arch="rmomo", evals=("val", "test"), metrics=False)      # one arm: no choice
+    md = build_report([root], tmp_path / "out").read_text()
+    rows = _csv(tmp_path / "out" / "choice_on_val.csv")
+    assert {r["arch"] for r in rows} == {"modumorph"} and len(rows) == 2
+    means = {k: float(np.mean(v)) for k, v in seeds.items()}
+    best = max(means, key=means.get)
+    other = min(means, key=means.get)
+    by_arm = {r["arm"]: r for r in rows}
+    for arm, v in seeds.items():
+        assert float(by_arm[arm]["val_return"]) == pytest.approx(np.mean(v))
+        assert float(by_arm[arm]["sd_over_seeds"]) == pytest.approx(np.std(v, ddof=1))
+        assert int(by_arm[arm]["seeds"]) == 3
+    assert by_arm[best]["chosen"] == "True" and by_arm[other]["chosen"] == "False"
+    assert float(by_arm[best]["margin"]) == pytest.approx(means[best] - means[other])
+    p = stats.ttest_ind(seeds[best], seeds[other], equal_var=False).pvalue
+    assert float(by_arm[best]["p_two_sided"]) == pytest.approx(p)
+    assert f"| ft | modumorph | {best} | 3 | {means[best]:.1f} |" in md and "**chosen**" in md
 
 
 def test_collect_keeps_the_small_artefacts_and_rebuilds_the_report(tmp_path):

@@ -38,6 +38,10 @@ at k times as seeds came in takes Bonferroni's bar (`stats.claim_test`'s looks);
 task and model, its own k, so one report over every run on file gives every claim its verdict; `claims.png` draws
 them all (difference in % of the baseline, CI, verdict).
 
+A setting the paper chooses per model on the val robots (the KL threshold) is read off the arms of a study: "Chosen
+on val" gives, per task and architecture with two or more arms evaluated on val, the arm with the higher mean val
+return and whether the seeds separate it from the runner-up (Welch).
+
 The report is the sections of `SECTIONS`, in order: each is a function (document, context) that adds figures
 (under its heading), tables and missing items to the `document.Document`; `build_report` reads the runs, makes the
 context and walks the list.
@@ -65,7 +69,7 @@ from .runs import CONTEXT_GROUPS, Run, classify, find_run_dirs, name_variants, r
 from .stats import (CLAIM_MARGIN, CLAIM_POWER, TASK_RANGES, Stat, change_stats, ci95, ci_level, claim_test,
                     common_eval_steps, eval_steps_of, furthest_mean_curve, mean_curve, normalised_or_nan,
                     repeated_seeds, robot_difference, seed_average, seed_count, seed_set_means, seed_train_means,
-                    set_stat, stat_of)
+                    set_stat, stat_of, welch_p_above)
 
 SETS = ("train", "test", "val", "variants")
 TASK_ORDER = tuple(TASK_RANGES)
@@ -618,6 +622,46 @@ def _seed_spread(doc: Document, ctx: ReportContext) -> None:
                        "seeds.")
 
 
+def _choice_on_val(doc: Document, ctx: ReportContext) -> None:
+    """The paper's rule for a training setting chosen per model (the KL threshold, issue 15 part 3): the arm with the
+    higher mean val return. For each task and architecture with two or more main groups that evaluated val (the
+    arms of a study, e.g. "modumorph, kl_threshold=0.03" and "modumorph, kl_threshold=0.05"): each arm's mean over
+    seeds of the seed's mean val return and the spread of those seeds; the arm the rule picks, its margin over the
+    runner-up and the two-sided Welch p of that margin, so that a pick the seeds cannot tell apart reads as one."""
+    rows, md = [], []
+    for t in ctx.tasks:
+        arms_of: dict[str, dict[str, np.ndarray]] = defaultdict(dict)
+        for name, runs in ctx.main[t].items():
+            vals = np.asarray([v for v in seed_set_means(runs, "val") if math.isfinite(v)])
+            if vals.size:
+                arms_of[name.split(",", 1)[0]][name] = vals
+        for base, arms in arms_of.items():
+            if len(arms) < 2:
+                continue
+            order = sorted(arms, key=lambda n: -float(arms[n].mean()))
+            best, second = arms[order[0]], arms[order[1]]
+            above = welch_p_above(best, second, 0.0)
+            p = min(1.0, 2 * min(above, 1 - above)) if math.isfinite(above) else math.nan
+            margin = float(best.mean() - second.mean())
+            for n in order:
+                v, chosen = arms[n], n == order[0]
+                sd = float(v.std(ddof=1)) if v.size > 1 else math.nan
+                rows.append([t, base, n, v.size, float(v.mean()), sd, chosen, margin if chosen else math.nan,
+                             p if chosen else math.nan])
+                md.append([t, base, n, v.size, fmt(float(v.mean())), fmt(sd), "**chosen**" if chosen else "",
+                           f"{fmt(margin)} ({100 * margin / abs(float(second.mean())):+.1f}%)" if chosen else "",
+                           _p(p) if chosen else ""])
+    if rows:
+        doc.table("Chosen on val", "choice_on_val",
+                  ["task", "arch", "arm", "seeds", "val_return", "sd_over_seeds", "chosen", "margin", "p_two_sided"],
+                  rows, ["task", "arch", "arm", "seeds", "val return (mean over seeds)", "sd over seeds", "rule",
+                         "margin over the runner-up", "p (two-sided)"], md,
+                  note="per architecture, the arm with the higher mean val return (the paper's rule for the KL "
+                       "threshold); each seed's val return is its mean over the val robots; p: Welch's t over "
+                       "seeds of the chosen arm against the runner-up. A large p says the seeds do not separate "
+                       "the arms: the rule's pick is then a tie broken by noise.")
+
+
 def _eval_claim_sides(doc: Document, task: str, main: dict[str, list[Run]], c: Claim) -> tuple:
     """(claim, set, model's seed means, baseline's, env steps evaluated (nan: the files do not say), why untested or
     None) of an eval-set claim: the evaluations at the env steps `common_eval_steps` picks; those at other steps are
@@ -825,6 +869,7 @@ SECTIONS: tuple[tuple[str, Callable[[Document, ReportContext], None]], ...] = (
     ("Per-robot differences", _robot_differences),
     ("Claims", _claims),
     ("Seed spread", _seed_spread),
+    ("Chosen on val", _choice_on_val),
     ("Reward per timestep", _reward_per_step),
     ("Training-set size", _train_size),
     ("Single context feature", _context_features),
