@@ -618,6 +618,37 @@ def test_the_arm_chosen_on_val_and_whether_the_seeds_separate_it(tmp_path):
     assert f"| ft | modumorph | {best} | 3 | {means[best]:.1f} |" in md and "**chosen**" in md
 
 
+def test_rates_per_phase_are_medians_without_the_slow_iterations(tmp_path):
+    """"Rates per phase" (rates.csv): per run, the iterations that ran all `ppo.epochs` and those the KL stop cut
+    short, each the median of rollout_sps / update_sps / sps and the mean epochs run, leaving out the iterations
+    slower than 3x the run's median wall time (the calls' first iterations, with their compilation)."""
+    d, _ = make_run(tmp_path / "runs", "ft-rmomo-s0", evals=(), metrics=False)
+    cfg = yaml.safe_load((d / "config.yaml").read_text())
+    cfg["ppo"] = {"epochs": 4}
+    (d / "config.yaml").write_text(yaml.safe_dump(cfg))
+    rng = np.random.default_rng(0)
+    rows = []
+    for it in range(1, 31):
+        epochs = 4 if it <= 10 else float(rng.choice([0.5, 1.25, 2.0]))
+        wall = 60.0 if it in (1, 17) else float(rng.uniform(1, 2))            # 1 and 17: the calls' first iterations
+        rows.append({"iteration": it, "env_steps": 1000 * it, "episode_return": it, "wall_s": wall,
+                     "rollout_sps": rng.uniform(30, 40), "update_sps": rng.uniform(10, 90), "sps": 1000 / wall,
+                     "epochs_run": epochs})
+    with (d / "metrics.csv").open("w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+    build_report([tmp_path / "runs"], tmp_path / "out")
+    got = {r["phase"]: r for r in _csv(tmp_path / "out" / "rates.csv")}
+    assert set(got) == {"all epochs", "KL stop active"}
+    for phase, full in (("all epochs", True), ("KL stop active", False)):
+        sel = [r for r in rows if (r["epochs_run"] == 4) == full and r["wall_s"] < 60]
+        assert int(got[phase]["iterations"]) == len(sel) and int(got[phase]["left_out"]) == 2
+        for k in ("rollout_sps", "update_sps", "sps"):
+            assert float(got[phase][k]) == pytest.approx(np.median([r[k] for r in sel]))
+        assert float(got[phase]["mean_epochs"]) == pytest.approx(np.mean([r["epochs_run"] for r in sel]))
+
+
 def test_collect_keeps_the_small_artefacts_and_rebuilds_the_report(tmp_path):
     """experiments.collect: config, metrics and eval JSON of every run under a folder (archive or folder), without
     checkpoints or TensorBoard files; the report builds from what it kept; an oversized file is left out."""

@@ -40,7 +40,9 @@ them all (difference in % of the baseline, CI, verdict).
 
 A setting the paper chooses per model on the val robots (the KL threshold) is read off the arms of a study: "Chosen
 on val" gives, per task and architecture with two or more arms evaluated on val, the arm with the higher mean val
-return and whether the seeds separate it from the runner-up (Welch).
+return and whether the seeds separate it from the runner-up (Welch). "Rates per phase" gives each run's env steps/s
+(rollout, update, end to end) over the iterations that ran all epochs and over those the KL stop cut short
+(`Run.phase_rates`), the figures docs/benchmarks.md records of each lease's runs.
 
 The report is the sections of `SECTIONS`, in order: each is a function (document, context) that adds figures
 (under its heading), tables and missing items to the `document.Document`; `build_report` reads the runs, makes the
@@ -861,6 +863,28 @@ def _compute_table(doc: Document, ctx: ReportContext) -> None:
                            "episode return of the last ~5% of iterations.")
 
 
+def _rates_table(doc: Document, ctx: ReportContext) -> None:
+    """Each run's env steps/s per phase (`Run.phase_rates`): what docs/benchmarks.md records of a lease's runs."""
+    rows, md = [], []
+    for r in ctx.runs:
+        for ph in r.phase_rates():
+            rows.append([_display(r.path), r.task, r.name, r.seed, " + ".join(r.devices) or "?", ph["phase"],
+                         ph["iterations"], ph["left_out"], ph["rollout_sps"], ph["update_sps"], ph["sps"],
+                         ph["epochs"]])
+            md.append([f"`{_display(r.path)}`", r.seed, ph["phase"], ph["iterations"],
+                       f"{ph['rollout_sps'] / 1e3:.1f} k", f"{ph['update_sps'] / 1e3:.1f} k",
+                       f"**{ph['sps'] / 1e3:.1f} k**", f"{ph['epochs']:.2f}"])
+    if rows:
+        doc.table("Rates per phase", "rates",
+                  ["run", "task", "arch", "seed", "device", "phase", "iterations", "left_out", "rollout_sps",
+                   "update_sps", "sps", "mean_epochs"], rows,
+                  ["run", "seed", "phase", "iterations", "rollout", "update", "end to end", "mean epochs run"], md,
+                  note=f"env steps/s, medians over the iterations that ran all epochs and over those the KL stop cut "
+                       f"short, leaving out iterations slower than {Run.SLOW_ITERATION:g}x the run's median wall time "
+                       f"(a call's first iteration, with its compilation; left_out in rates.csv); on the run's "
+                       f"device (runs table), so compare rates only between runs of one device.")
+
+
 # (heading, section) in report order; a section's figures go under "## <heading>" (the runs table under "## Runs")
 SECTIONS: tuple[tuple[str, Callable[[Document, ReportContext], None]], ...] = (
     ("Runs", _runs_table),
@@ -875,6 +899,7 @@ SECTIONS: tuple[tuple[str, Callable[[Document, ReportContext], None]], ...] = (
     ("Single context feature", _context_features),
     ("Parameters", _params_table),
     ("Compute", _compute_table),
+    ("Rates", _rates_table),
 )
 
 

@@ -196,6 +196,31 @@ class Run:
         k = max(1, int(math.ceil(0.05 * y.size)))
         return float(y[-k:].mean())
 
+    #: an iteration slower than this many times the run's median wall time holds a compilation (a call's first
+    #: iteration) or a checkpoint wait: left out of the phase rates
+    SLOW_ITERATION = 3.0
+
+    def phase_rates(self) -> list[dict]:
+        """Env steps/s per phase as the benchmark notes give them: the iterations that ran all `ppo.epochs` epochs
+        (the worst case) and those the KL stop cut short (a real run's rate), each the median over its iterations of
+        metrics.csv's `rollout_sps`, `update_sps` and `sps` (end to end) and the mean epochs run, leaving out the
+        iterations slower than SLOW_ITERATION x the median wall time. [] when metrics.csv lacks those columns."""
+        m = self.metrics
+        if any(k not in m for k in ("rollout_sps", "update_sps", "sps", "wall_s", "epochs_run")):
+            return []
+        full = float((self.cfg.get("ppo") or {}).get("epochs", 8))
+        w, epochs = m["wall_s"], m["epochs_run"]
+        kept = np.isfinite(w) & (w <= self.SLOW_ITERATION * np.nanmedian(w))
+        out = []
+        for phase, sel in (("all epochs", epochs >= full), ("KL stop active", epochs < full)):
+            sel = sel & kept
+            if sel.any():
+                out.append({"phase": phase, "iterations": int(sel.sum()), "left_out": int((~kept).sum()),
+                            "rollout_sps": float(np.nanmedian(m["rollout_sps"][sel])),
+                            "update_sps": float(np.nanmedian(m["update_sps"][sel])),
+                            "sps": float(np.nanmedian(m["sps"][sel])), "epochs": float(np.nanmean(epochs[sel]))})
+        return out
+
     def wall_hours(self) -> float:
         w = self.metrics.get("wall_s")
         return float(np.nansum(w) / 3600) if w is not None else float("nan")
