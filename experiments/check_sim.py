@@ -69,6 +69,7 @@ class CheckSimConfig:
     hfield_contacts_per_geom: int = _ENV.hfield_contacts_per_geom
     hfield_candidates: int = _ENV.hfield_candidates     # prisms per group tested exactly (0: all)
     contact_budget: int = _ENV.contact_budget     # csr / obstacle: the env's cap on contacts per env (0: none)
+    flat_contact_budget: int = _ENV.flat_contact_budget   # ft / incline: the same cap (0: none, the default)
     unpadded_mjx: bool = False               # also run each robot alone in MJX: the padding's share in float32
                                              # (one compilation per robot, ~10 s each on a CPU)
     x64: bool = False                        # run MJX in float64 (jax.enable_x64): with unpadded_mjx, padding_mjx
@@ -192,6 +193,7 @@ def check(a: CheckSimConfig) -> None:
     summary = self_pair_summary(rs.robots, fidelity.FLOOR_WORLD, opts0, tree)
     if summary is not None:
         print("# " + summary.line(), flush=True)
+    budget = dataclasses.replace(_ENV, flat_contact_budget=a.flat_contact_budget).contact_cap(uses_hfield=False)
     settings = [(a.iterations, a.ls_iterations)]
     if a.mujoco_defaults and (100, 50) not in settings:
         settings.append((100, 50))
@@ -199,7 +201,7 @@ def check(a: CheckSimConfig) -> None:
     rows = []
     fl = "float64" if a.x64 else "float32"
     for it, ls in settings:
-        opts = SolverOptions(iterations=it, ls_iterations=ls, self_collision=a.self_collision)
+        opts = SolverOptions(iterations=it, ls_iterations=ls, self_collision=a.self_collision, contact_budget=budget)
         t0 = time.time()
         print(f"# comparing {len(rs)} robots with MuJoCo C (solver iterations {it}, line search {ls}; compiling "
               "the stacked model takes a while)...", flush=True)
@@ -207,7 +209,8 @@ def check(a: CheckSimConfig) -> None:
                                floor_contacts=a.floor_contacts, matmul_precision=a.matmul_precision,
                                unpadded_mjx=a.unpadded_mjx, x64=a.x64, alone=alone)
         print(f"# {rs.name}: {len(res)} robots, solver iterations {it}, line search {ls}, "
-              f"self-collision {'on' if a.self_collision else 'off'}, floor {a.floor_contacts}, {a.steps} control steps, "
+              f"self-collision {'on' if a.self_collision else 'off'}, floor {a.floor_contacts}, "
+              f"contact budget {budget or 'none'}, {a.steps} control steps, "
               f"matmul precision {a.matmul_precision}, MJX in {fl} on {jax.devices()[0].platform} "
               f"({time.time() - t0:.0f} s)")
         fields = list(PADDED + (ALONE if a.unpadded_mjx else ()))
@@ -224,6 +227,10 @@ def check(a: CheckSimConfig) -> None:
         rows += [[r.name, it, ls, *(f"{getattr(r, f):.3e}" for f in fields)] for r in res]
         for field in fields:
             print_summary(field, (getattr(r, field) for r in res))
+        most = max(res, key=lambda r: r.contacts)
+        print(f"# contacts touching at once, each robot alone in MuJoCo C: median "
+              f"{np.median([r.contacts for r in res]):g}, max {most.contacts} ({most.name}); a flat_contact_budget "
+              f"of at least {most.contacts} keeps every force of these runs")
         worst = max(res, key=lambda r: r.error)
         over = [r for r in res if r.error > a.tolerance]
         print(f"# worst {worst.error:.2e} m ({worst.name}); {len(over)} of {len(res)} over {a.tolerance:g} m")
@@ -246,11 +253,11 @@ def check_task(a: CheckSimConfig, rs) -> None:
                                 hfield_contacts=a.hfield_contacts,
                                 hfield_contacts_per_geom=a.hfield_contacts_per_geom,
                                 hfield_candidates=a.hfield_candidates,
-                                contact_budget=a.contact_budget)
+                                contact_budget=a.contact_budget, flat_contact_budget=a.flat_contact_budget)
     rule_detail = (f" ({a.hfield_contacts_per_geom} per geom, {a.hfield_candidates or 'all'} candidate prisms per "
                    "group)" if a.hfield_contacts == "mujoco" else "")
     hfield = (f", height-field contacts {a.hfield_contacts}{rule_detail}, contact budget {a.contact_budget or 'none'}"
-              if on_hfield else ", MetaMorph's slab in MuJoCo C")
+              if on_hfield else f", MetaMorph's slab in MuJoCo C, contact budget {a.flat_contact_budget or 'none'}")
     print(f"# {rs.name} on {a.task}: {len(res)} robots, solver iterations {a.iterations}, line search "
           f"{a.ls_iterations}, {a.steps} control steps{hfield} "
           f"({time.time() - t0:.0f} s); mjx = padded MJX vs padded MuJoCo C (float64), max body-position error (m); "

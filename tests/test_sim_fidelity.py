@@ -2,6 +2,8 @@
 The whole-set check is `python -m experiments.check_sim SET` (docs/benchmarks.md has the numbers)."""
 from __future__ import annotations
 
+import re
+
 import jax
 import jax.numpy as jnp
 import mujoco
@@ -46,6 +48,41 @@ def test_padded_mjx_matches_mujoco_c_at_default_settings():
     for f in ("error", "padding", "padding_mjx", "mjx_alone", "mjx_ulp"):
         assert getattr(sliced[1], f) == getattr(res[1], f), f
     assert fidelity.summary([r.padding_mjx for r in sliced])["max"] == res[1].padding_mjx
+
+
+def test_a_flat_contact_budget_above_the_touching_contacts_changes_nothing():
+    """`env.flat_contact_budget` = K on ft: MJX keeps the K deepest of the env's contact slots (MJX's
+    `max_contact_points`), so the solver has 4 K contact rows instead of 4 per slot. With K above the contacts that
+    touch at once (session 34 counted at most 10 in MuJoCo C, 100 train robots x 20 s of random actions), padded
+    MJX stays where it is without a budget: within float32's spread (~1e-6 m here, measured with and without K =
+    12) of the same padded model in MuJoCo C, which keeps every contact; with K = 1 it cannot hold the robots up."""
+    from mjx_morph.sim.env import EnvConfig, UnimalEnv
+    robots = _robots(2)
+    for k, want in ((0, None), (12, 12)):
+        env = UnimalEnv(robots, EnvConfig(task="ft", flat_contact_budget=k))
+        ncon = mjx.make_data(env.sm.model_for(0), impl="jax").contact.dist.shape[0]
+        assert (ncon == want) if want else ncon > 12, (k, ncon)
+    with pytest.raises(ValueError, match="env.flat_contact_budget=-1"):
+        UnimalEnv(robots, EnvConfig(task="ft", flat_contact_budget=-1))
+    # the unused slots' contacts (inside their parent's geom, so at a negative raw distance) are ranked last
+    env = UnimalEnv(robots, EnvConfig(task="ft"))
+    seen = 0
+    with contact.floor("box"):
+        collide = jax.jit(lambda m, d: mjx.collision(m, mjx.kinematics(m, d)))
+        for r in range(len(robots)):
+            m = env.sm.model_for(r)
+            c = collide(m, mjx.make_data(m, impl="jax")).contact
+            margin = np.asarray(m.geom_margin)[np.asarray(c.geom)].sum(axis=1)
+            never, dist = margin < contact.NEVER_ACTIVE, np.asarray(c.dist)
+            seen += never.sum()
+            assert (dist[never] == contact.INACTIVE).all() and (dist[~never] < contact.INACTIVE).any(), r
+    assert seen > 0                      # the two robots differ in limbs: one has unused slots
+    fast = {"xla_backend_optimization_level": 0, "xla_llvm_disable_expensive_passes": True}
+    for r in fidelity.compare(robots, SolverOptions(contact_budget=12), steps=25, compiler_options=fast):
+        assert r.mjx < 1e-4 and r.error < fidelity.TOLERANCE, (r.name, r.mjx, r.error)
+        assert 1 < r.contacts <= 12, (r.name, r.contacts)       # MuJoCo C's most touching contacts: under the budget
+    for r in fidelity.compare(robots, SolverOptions(contact_budget=1), steps=25, compiler_options=fast):
+        assert r.error > fidelity.TOLERANCE, (r.name, r.error)
 
 
 def test_float64_mjx_isolates_the_padding():
@@ -130,7 +167,7 @@ def test_floor_contacts_equal_mujoco_c(incline):
     (distances, points, and the frame up to the signs of its axes), rule "plane" MuJoCo C's against a plane (first
     tangent = the capsule axis projected), "mjx" MJX's own; random capsule poses on ft's and incline's floors."""
     collide = collision_driver._COLLISION_FUNC[(GeomType.PLANE, GeomType.CAPSULE)]
-    assert collide is contact._floor_capsule
+    assert collide.never_ranked and collide.ncon == contact._floor_capsule.ncon     # the rule, unused slots ranked last
     a = np.radians(incline)
     plane = terrain.Plane() if not incline else terrain.InclinedPlane(incline_deg=incline)
     plane_xml = plane.world().geoms.replace(' contype="0" conaffinity="1"', "")
@@ -230,6 +267,8 @@ def test_check_sim_slices_the_alone_runs_and_writes_csv(tmp_path, capsys):
     out = tmp_path / "rows.csv"
     args = ["gen/train", "num_robots=2", "steps=5", "unpadded_mjx=true"]
     assert check_sim.main([*args, "unpadded_range=1:2", f"csv={out}"]) == 0
+    text = capsys.readouterr().out
+    assert "contact budget none" in text and int(re.search(r"contacts touching at once.* max (\d+) ", text)[1]) >= 1
     rows = list(csv.DictReader(out.open()))
     assert len(rows) == 2 and rows[0]["padding_mjx"] == "nan" and float(rows[1]["padding_mjx"]) < 1e-3
     assert all(float(r["error"]) < fidelity.TOLERANCE for r in rows)

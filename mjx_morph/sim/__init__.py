@@ -17,7 +17,8 @@ Data flow (one idea per module):
     sampling     balanced / uniform robot sampling (a state the training loop updates once per iteration)
     env          `UnimalEnv`: the task (reset / step without reset / observe); `make_env`
     wrappers     `AutoReset`: auto-reset into a sampled robot, batched vreset / vstep / init (what make_env returns)
-    contact      floor-capsule contacts for MJX as MuJoCo C makes them against MetaMorph's box floor
+    contact      floor-capsule contacts for MJX as MuJoCo C makes them against MetaMorph's box floor; unused slots'
+                 contacts ranked last for a contact budget (`never_ranked`)
     hfield_contact  height-field sphere / capsule contacts for MJX as MuJoCo C makes them (one per prism)
     cpu_linalg   pure-JAX Cholesky for MJX on CPU with jaxlib < 0.11 (deadlock workaround)
     fidelity     padded MJX robots against the robots alone in MuJoCo C (`experiments.check_sim`)

@@ -41,9 +41,10 @@ contacts are MuJoCo C's (`hfield_contacts="mujoco"`, `hfield_contact.py`: one pe
 `hfield_contacts_per_geom` = 32 per geom, tested exactly only on the `hfield_candidates` = 96 prisms per group of
 pairs that a cheap bound says can touch) and MJX keeps at most `contact_budget` = 64 contacts per env on those
 tasks, the deepest (MuJoCo C has no such cap; none of 100 train robots x 3 s of random actions made more than 44).
-Contacts otherwise as
-MetaMorph: condim 3, friction 0.7, pyramidal cone, Newton solver, Euler
-integrator, parent-child filtering, no exclude pairs.
+On ft / incline every contact slot is kept by default; `flat_contact_budget` = K keeps the K deepest there, which
+changes no force while at most K contacts touch (up to float rounding: the other slots' rows carry none) and
+shrinks the solver's constraint rows, the rollout's largest cost. Contacts otherwise as MetaMorph: condim 3,
+friction 0.7, pyramidal cone, Newton solver, Euler integrator, parent-child filtering, no exclude pairs.
 """
 from __future__ import annotations
 
@@ -96,6 +97,18 @@ class EnvConfig:
                                     # touch); 0: every prism of every geom's window
     contact_budget: int = 64        # csr / obstacle: MJX keeps at most this many contacts per env, the deepest
                                     # (MuJoCo C: no such cap); 0: every contact slot (padding.SolverOptions)
+    flat_contact_budget: int = 0    # ft / incline: the same cap (0: every contact slot, the default). With
+                                    # self-collision an env has 80-101 contact slots, and MuJoCo C had at most 12
+                                    # touching at once in check_sim's runs of the train set (session 34): a cap
+                                    # above that changes no force and shrinks the solver (docs/benchmarks.md)
+
+    def contact_cap(self, uses_hfield: bool) -> int | None:
+        """The contact budget the env applies on a task with or without height fields (None: every slot)."""
+        budget = self.contact_budget if uses_hfield else self.flat_contact_budget
+        if budget < 0:
+            key = "contact_budget" if uses_hfield else "flat_contact_budget"
+            raise ValueError(f"env.{key}={budget}: expected a count of contacts per env (0: no budget)")
+        return budget or None
     context_features: Optional[List[str]] = None   # None: all context features; else only these groups of
                                                    # mjx_morph.layout.CONTEXT_GROUPS, the others zeroed
     matmul_precision: str = "highest"   # JAX matmul precision of the physics: "highest" (float32, as MuJoCo's
@@ -170,7 +183,7 @@ class UnimalEnv:
             raise ValueError(f"env.matmul_precision={config.matmul_precision!r}: expected highest or default")
         self.morphologies = tuple(robots)
         self.terrain: terrain.Terrain = terrain.for_task(self.task, self.morphologies)
-        budget = config.contact_budget if self.terrain.uses_hfield and config.contact_budget > 0 else None
+        budget = config.contact_cap(self.terrain.uses_hfield)
         opts = SolverOptions(iterations=config.iterations, ls_iterations=config.ls_iterations,
                              self_collision=config.self_collision, self_collision_cut=config.self_collision_cut,
                              contact_budget=budget)

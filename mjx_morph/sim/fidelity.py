@@ -91,6 +91,8 @@ class Result:
     padding_mjx: float = float("nan")   # padded MJX vs alone MJX, both float32 (float64: x64) (unpadded_mjx=True)
     mjx_alone: float = float("nan")     # alone MJX vs alone MuJoCo C (compare(unpadded_mjx=True))
     mjx_ulp: float = float("nan")       # alone MJX vs alone MJX started one ulp of its float away (unpadded_mjx=True)
+    contacts: int = -1                  # the most contacts the robot alone had at once in MuJoCo C (touching ones:
+                                        # a `flat_contact_budget` at or above it changes no force)
 
 
 def padded_c_models(sm, world: WorldSpec = METAMORPH_WORLD) -> list[mujoco.MjModel]:
@@ -155,18 +157,21 @@ def _run_mjx_alone(mm: mujoco.MjModel, starts, ctrls, substeps: int, bodies, flo
     return [np.asarray(f(*args(q, v)), np.float64) for q, v in starts]
 
 
-def _run_c(mm: mujoco.MjModel, qpos, qvel, ctrls, substeps: int, bodies) -> np.ndarray:
+def _run_c(mm: mujoco.MjModel, qpos, qvel, ctrls, substeps: int, bodies) -> tuple[np.ndarray, int]:
     """Body positions (steps, len(bodies), 3) of MuJoCo C after each control step (at the start of the last
-    substep, where MJX leaves xpos too)."""
+    substep, where MJX leaves xpos too), and the most contacts it had at once (MuJoCo C keeps only those that
+    touch: within the geoms' margin, 0 here)."""
     d = mujoco.MjData(mm)
     d.qpos[:], d.qvel[:] = qpos, qvel
     out = np.zeros((len(ctrls), len(bodies), 3))
+    most = 0
     for t, c in enumerate(ctrls):
         d.ctrl[:] = c
         for _ in range(substeps):
             mujoco.mj_step(mm, d)
+            most = max(most, d.ncon)
         out[t] = d.xpos[bodies]
-    return out
+    return out, most
 
 
 def summary(values) -> dict:
@@ -245,13 +250,13 @@ def _compare(robots, options, steps, substeps, seed, tree, compiler_options, flo
     out = []
     for r, m in enumerate(robots):
         real = bodies[r, :m.num_nodes]
-        x_alone = _run_c(alone[r], *starts[r], actions[r], substeps, np.arange(1, 1 + m.num_nodes))
+        x_alone, contacts = _run_c(alone[r], *starts[r], actions[r], substeps, np.arange(1, 1 + m.num_nodes))
         ctrl = np.concatenate([np.clip(act24[r], -1, 1), np.zeros((steps, 1))], axis=1)[:, tab.ctrl_src[r]]
-        x_padded = _run_c(padded_c[r], qpos[r], qvel[r], ctrl, substeps, real)
+        x_padded, _ = _run_c(padded_c[r], qpos[r], qvel[r], ctrl, substeps, real)
         x_mjx = xs[r][:, real]
         q, v = starts[r]
         nudge = rng.uniform(-PERTURBATION, PERTURBATION, q.shape)
-        x_nudged = _run_c(alone[r], q + nudge, v, actions[r], substeps, np.arange(1, 1 + m.num_nodes))
+        x_nudged, _ = _run_c(alone[r], q + nudge, v, actions[r], substeps, np.arange(1, 1 + m.num_nodes))
         err = np.abs(x_mjx - x_alone).max(axis=(1, 2))
         padding_mjx = mjx_alone = mjx_ulp = float("nan")
         if unpadded_mjx:
@@ -265,7 +270,7 @@ def _compare(robots, options, steps, substeps, seed, tree, compiler_options, flo
             mjx_ulp = float(np.abs(x_ulp - x_alone_mjx).max())
         out.append(Result(m.name, float(err.max()), float(np.abs(x_padded - x_alone).max()),
                           float(np.abs(x_mjx - x_padded).max()), float(np.abs(x_nudged - x_alone).max()), err,
-                          padding_mjx, mjx_alone, mjx_ulp))
+                          padding_mjx, mjx_alone, mjx_ulp, contacts))
     return out
 
 
@@ -285,7 +290,7 @@ def compare_task(robots: Sequence[Morphology], task: str, options: SolverOptions
     (`terrain.patch`), so the comparison is MJX's height-field collider (the env's `hfield_contacts` rule,
     hfield_contact.py), its contact budget and float32 against MuJoCo C's; on the incline it is the floor rule
     (contact.py) and float32 against MuJoCo C's box. `env_options`: further EnvConfig options (hfield_contacts,
-    hfield_contacts_per_geom, contact_budget). Body positions are compared through MuJoCo C's kinematics of both
+    hfield_contacts_per_geom, contact_budget, flat_contact_budget). Body positions are compared through MuJoCo C's kinematics of both
     states."""
     from .env import EnvConfig, UnimalEnv
     robots = tuple(robots)
