@@ -256,8 +256,10 @@ def check_task(a: CheckSimConfig, rs) -> None:
                                 contact_budget=a.contact_budget, flat_contact_budget=a.flat_contact_budget)
     rule_detail = (f" ({a.hfield_contacts_per_geom} per geom, {a.hfield_candidates or 'all'} candidate prisms per "
                    "group)" if a.hfield_contacts == "mujoco" else "")
-    hfield = (f", height-field contacts {a.hfield_contacts}{rule_detail}, contact budget {a.contact_budget or 'none'}"
-              if on_hfield else f", MetaMorph's slab in MuJoCo C, contact budget {a.flat_contact_budget or 'none'}")
+    budget = dataclasses.replace(_ENV, contact_budget=a.contact_budget,
+                                 flat_contact_budget=a.flat_contact_budget).contact_cap(on_hfield)
+    hfield = (f", height-field contacts {a.hfield_contacts}{rule_detail}" if on_hfield
+              else ", MetaMorph's slab in MuJoCo C") + f", contact budget {budget or 'none'}"
     print(f"# {rs.name} on {a.task}: {len(res)} robots, solver iterations {a.iterations}, line search "
           f"{a.ls_iterations}, {a.steps} control steps{hfield} "
           f"({time.time() - t0:.0f} s); mjx = padded MJX vs padded MuJoCo C (float64), max body-position error (m); "

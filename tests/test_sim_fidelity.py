@@ -64,18 +64,24 @@ def test_a_flat_contact_budget_above_the_touching_contacts_changes_nothing():
         assert (ncon == want) if want else ncon > 12, (k, ncon)
     with pytest.raises(ValueError, match="env.flat_contact_budget=-1"):
         UnimalEnv(robots, EnvConfig(task="ft", flat_contact_budget=-1))
-    # the unused slots' contacts (inside their parent's geom, so at a negative raw distance) are ranked last
-    env = UnimalEnv(robots, EnvConfig(task="ft"))
+    # with a budget (here one above every slot, so all are kept), the unused slots' contacts (inside their parent's
+    # geom, at a negative raw distance in some poses) are ranked last; without one their raw distances are left alone
     seen = 0
-    with contact.floor("box"):
-        collide = jax.jit(lambda m, d: mjx.collision(m, mjx.kinematics(m, d)))
-        for r in range(len(robots)):
-            m = env.sm.model_for(r)
-            c = collide(m, mjx.make_data(m, impl="jax")).contact
-            margin = np.asarray(m.geom_margin)[np.asarray(c.geom)].sum(axis=1)
-            never, dist = margin < contact.NEVER_ACTIVE, np.asarray(c.dist)
-            seen += never.sum()
-            assert (dist[never] == contact.INACTIVE).all() and (dist[~never] < contact.INACTIVE).any(), r
+    for budget in (0, 200):
+        env = UnimalEnv(robots, EnvConfig(task="ft", flat_contact_budget=budget))
+        with contact.floor("box"):
+            collide = jax.jit(lambda m, d: mjx.collision(m, mjx.kinematics(m, d)))
+            for r in range(len(robots)):
+                m = env.sm.model_for(r)
+                c = collide(m, mjx.make_data(m, impl="jax")).contact
+                margin = np.asarray(m.geom_margin)[np.asarray(c.geom)].sum(axis=1)
+                never, dist = margin < contact.NEVER_ACTIVE, np.asarray(c.dist)
+                seen += never.sum()
+                assert (dist[~never] < contact.INACTIVE).any(), r
+                if budget:
+                    assert (dist[never] == contact.INACTIVE).all(), r
+                elif never.any():
+                    assert (dist[never] != contact.INACTIVE).all(), r          # the colliders' raw distances
     assert seen > 0                      # the two robots differ in limbs: one has unused slots
     fast = {"xla_backend_optimization_level": 0, "xla_llvm_disable_expensive_passes": True}
     for r in fidelity.compare(robots, SolverOptions(contact_budget=12), steps=25, compiler_options=fast):

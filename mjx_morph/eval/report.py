@@ -636,7 +636,7 @@ def _choice_on_val(doc: Document, ctx: ReportContext) -> None:
         for name, runs in ctx.main[t].items():
             vals = np.asarray([v for v in seed_set_means(runs, "val") if math.isfinite(v)])
             if vals.size:
-                arms_of[name.split(",", 1)[0]][name] = vals
+                arms_of[runs[0].arch][name] = vals
         for base, arms in arms_of.items():
             if len(arms) < 2:
                 continue

@@ -24,10 +24,11 @@ Three rules can be chosen (`EnvConfig.floor_contacts`):
 Sphere-plane contacts (the torso) already agree with MuJoCo C's sphere-box face contacts (MJX's `make_frame` and
 `mju_makeFrame` pick the same tangent). Height-field contacts (csr, obstacle) are MJX's own and are not changed.
 
-Unused slots: `install()` also wraps this collider and MJX's sphere / capsule ones (`never_ranked`) so that the
-contacts of the padded tree's unused slots, which never carry force, stand at distance INACTIVE instead of their raw
-(negative: inside the parent's geom) distance, and a contact budget (`EnvConfig.flat_contact_budget`) keeps real
-contacts first.
+Unused slots: `install()` also wraps this collider and MJX's sphere / capsule ones (`never_ranked`) so that, in a
+model with a contact budget (`EnvConfig.flat_contact_budget`, `contact_budget`), the contacts of the padded tree's
+unused slots, which never carry force, stand at distance INACTIVE instead of their raw (negative: inside the
+parent's geom) distance and the budget keeps real contacts first (`never_active_last`, which the height-field
+colliders call too).
 
 How it is installed: MJX looks its colliders up in a private, process-wide table (`collision_driver._COLLISION_FUNC`
 of the pinned mujoco-mjx) while a step is traced. `install()`, called once when `mjx_morph.sim` is imported, puts
@@ -47,7 +48,7 @@ from mujoco.mjx._src.types import GeomType
 
 _KEY = (GeomType.PLANE, GeomType.CAPSULE)
 _MJX = collision_primitive.plane_capsule                 # MJX's own collider (the table's entry before `install`)
-INACTIVE = 1.0e4            # distance given to a candidate contact the rule drops (MJX: active iff dist < margin)
+INACTIVE = 1.0e4            # distance of a contact slot that carries no contact (MJX: active iff dist < margin)
 NEVER_ACTIVE = -1.0e3       # a pair's margin below this: one of its geoms never touches (model.INERT_MARGIN: the
                             # unused slots of the padded tree)
 #: MJX's colliders of the pairs an unused slot can be in on ft / incline (the torso is a sphere, limbs capsules;
@@ -106,20 +107,27 @@ _floor_capsule.ncon = 2
 assert all(f.ncon == 2 for f in RULES.values())
 
 
+def never_active_last(m, geom, dist, ncon: int):
+    """`dist` (a collider's distances, `ncon` per pair of `geom`) with the contacts of pairs that can never be active
+    (a geom of margin model.INERT_MARGIN, an unused slot of the padded tree) moved to distance INACTIVE, where the
+    model has a contact budget; unchanged otherwise. They carry no force either way (MJX: active iff dist < margin),
+    but an unused slot sits at its parent's origin, inside the parent's geom, so its raw distance is negative (-0.05
+    m for a torso-sized overlap): the budget (MJX's `max_contact_points`, which keeps the deepest by raw distance)
+    would keep those and drop real contacts. Without a budget the traced program stays as it was."""
+    if collision_driver._numeric(m, "max_contact_points") < 0:
+        return dist
+    never = (m.geom_margin[geom[:, 0]] + m.geom_margin[geom[:, 1]]) < NEVER_ACTIVE
+    return jnp.where(jnp.repeat(never, ncon), INACTIVE, dist)
+
+
 def never_ranked(fn):
-    """`fn`, a collider of MJX's table, with the contacts of pairs that can never be active (a geom of margin
-    model.INERT_MARGIN, an unused slot of the padded tree) moved to distance INACTIVE. They carried no force
-    before either (MJX: active iff dist < margin), but an unused slot sits at its parent's origin, inside the
-    parent's geom, so its raw distance is negative (-0.05 m for a torso-sized overlap): an env-wide contact budget
-    (MJX's `max_contact_points`, which keeps the deepest by raw distance) would keep those and drop real
-    contacts."""
+    """`fn`, a collider of MJX's table, with its distances passed through `never_active_last`."""
     if getattr(fn, "never_ranked", False):
         return fn
 
     def ranked(m, d, key, geom):
         dist, pos, frame = fn(m, d, key, geom)
-        never = (m.geom_margin[geom[:, 0]] + m.geom_margin[geom[:, 1]]) < NEVER_ACTIVE
-        return jnp.where(jnp.repeat(never, fn.ncon), INACTIVE, dist), pos, frame
+        return never_active_last(m, geom, dist, fn.ncon), pos, frame
 
     ranked.ncon = fn.ncon
     ranked.never_ranked = True

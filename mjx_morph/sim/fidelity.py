@@ -290,8 +290,8 @@ def compare_task(robots: Sequence[Morphology], task: str, options: SolverOptions
     (`terrain.patch`), so the comparison is MJX's height-field collider (the env's `hfield_contacts` rule,
     hfield_contact.py), its contact budget and float32 against MuJoCo C's; on the incline it is the floor rule
     (contact.py) and float32 against MuJoCo C's box. `env_options`: further EnvConfig options (hfield_contacts,
-    hfield_contacts_per_geom, contact_budget, flat_contact_budget). Body positions are compared through MuJoCo C's kinematics of both
-    states."""
+    hfield_contacts_per_geom, contact_budget, flat_contact_budget). Body positions are compared through MuJoCo C's
+    kinematics of both states."""
     from .env import EnvConfig, UnimalEnv
     robots = tuple(robots)
     env = UnimalEnv(robots, EnvConfig(task=task, iterations=options.iterations, ls_iterations=options.ls_iterations,

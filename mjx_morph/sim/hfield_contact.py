@@ -49,9 +49,9 @@ ncon x (number of pairs) rows per function key (`collision_driver.make_condim`, 
 each pair's contact parameters ncon times (`collision_driver.collision`). This collider declares `per_geom` (32
 by default) and returns MuJoCo C's contacts first, in MuJoCo C's order (the `per_geom` deepest if there are more),
 then unused slots at distance INACTIVE (MJX: active iff distance < margin). Geoms that can never touch (the unused
-slots' margin -1e4, model.INERT_MARGIN) get INACTIVE too, so that an env-wide contact budget (MJX's
-`max_contact_points`, `padding.SolverOptions.contact_budget`: it keeps the deepest contacts of all pairs) never
-keeps them.
+slots' margin -1e4, model.INERT_MARGIN) get INACTIVE too where the model has an env-wide contact budget (MJX's
+`max_contact_points`, `padding.SolverOptions.contact_budget`: it keeps the deepest contacts of all pairs), so that
+it never keeps them (`contact.never_active_last`).
 
 How it is installed (as contact.py's floor collider): `install()`, called once when `mjx_morph.sim` is imported,
 puts one entry for (height field, sphere) and one for (height field, capsule) into MJX's private collision table
@@ -72,8 +72,8 @@ import jax.numpy as jnp
 from mujoco.mjx._src import collision_convex, collision_driver, math as mjx_math, mesh
 from mujoco.mjx._src.types import GeomType
 
-INACTIVE = 1.0e4            # distance of an unused contact slot
-NEVER_ACTIVE = -1.0e3       # a pair's margin below this: its geoms never touch (model.INERT_MARGIN, unused slots)
+from .contact import INACTIVE, never_active_last
+
 CCD_TOLERANCE = 1.0e-6      # mjOption.ccd_tolerance (default): below this core distance MuJoCo C runs EPA
 _BIG = 1.0e10
 
@@ -415,8 +415,7 @@ class _Installed:
         if fn in _MJX.values():
             return dist, pos, frame
         # geoms that can never be active (model.INERT_MARGIN): unused slots, never picked by a contact budget
-        never = (m.geom_margin[geom[:, 0]] + m.geom_margin[geom[:, 1]]) < NEVER_ACTIVE
-        return jnp.where(jnp.repeat(never, fn.ncon), INACTIVE, dist), pos, frame
+        return never_active_last(m, geom, dist, fn.ncon), pos, frame
 
 
 def install() -> None:
