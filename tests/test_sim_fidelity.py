@@ -270,11 +270,13 @@ def test_check_sim_slices_the_alone_runs_and_writes_csv(tmp_path, capsys):
     CSV row per robot; a malformed or out-of-range slice, or a slice without unpadded_mjx, is a clear error."""
     import csv
     from experiments import check_sim
+    from mjx_morph.sim.env import EnvConfig
     out = tmp_path / "rows.csv"
     args = ["gen/train", "num_robots=2", "steps=5", "unpadded_mjx=true"]
     assert check_sim.main([*args, "unpadded_range=1:2", f"csv={out}"]) == 0
     text = capsys.readouterr().out
-    assert "contact budget none" in text and int(re.search(r"contacts touching at once.* max (\d+) ", text)[1]) >= 1
+    assert f"contact budget {EnvConfig().flat_contact_budget}" in text          # the env's default budget
+    assert int(re.search(r"contacts touching at once.* max (\d+) ", text)[1]) >= 1
     rows = list(csv.DictReader(out.open()))
     assert len(rows) == 2 and rows[0]["padding_mjx"] == "nan" and float(rows[1]["padding_mjx"]) < 1e-3
     assert all(float(r["error"]) < fidelity.TOLERANCE for r in rows)

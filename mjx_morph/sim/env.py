@@ -41,9 +41,9 @@ contacts are MuJoCo C's (`hfield_contacts="mujoco"`, `hfield_contact.py`: one pe
 `hfield_contacts_per_geom` = 32 per geom, tested exactly only on the `hfield_candidates` = 96 prisms per group of
 pairs that a cheap bound says can touch) and MJX keeps at most `contact_budget` = 64 contacts per env on those
 tasks, the deepest (MuJoCo C has no such cap; none of 100 train robots x 3 s of random actions made more than 44).
-On ft / incline every contact slot is kept by default; `flat_contact_budget` = K keeps the K deepest there, which
-changes no force while at most K contacts touch (up to float rounding: the other slots' rows carry none) and
-shrinks the solver's constraint rows, the rollout's largest cost. Contacts otherwise as MetaMorph: condim 3,
+On ft / incline MJX keeps the `flat_contact_budget` = 32 deepest of an env's 80-101 contact slots, which changes no
+force while at most 32 contacts touch (MuJoCo C: at most 12; up to float rounding, the other slots' rows carry none)
+and shrinks the solver's constraint rows, the rollout's largest cost (+27% rollout env steps/s on an H200). Contacts otherwise as MetaMorph: condim 3,
 friction 0.7, pyramidal cone, Newton solver, Euler integrator, parent-child filtering, no exclude pairs.
 """
 from __future__ import annotations
@@ -97,10 +97,13 @@ class EnvConfig:
                                     # touch); 0: every prism of every geom's window
     contact_budget: int = 64        # csr / obstacle: MJX keeps at most this many contacts per env, the deepest
                                     # (MuJoCo C: no such cap); 0: every contact slot (padding.SolverOptions)
-    flat_contact_budget: int = 0    # ft / incline: the same cap (0: every contact slot, the default). With
-                                    # self-collision an env has 80-101 contact slots, and MuJoCo C had at most 12
-                                    # touching at once in check_sim's runs of the train set (session 34): a cap
-                                    # above that changes no force and shrinks the solver (docs/benchmarks.md)
+    flat_contact_budget: int = 32   # ft / incline: the same cap (0: every contact slot, the default before
+                                    # session 35). With self-collision an env has 80-101 contact slots, and MuJoCo C
+                                    # had at most 12 touching at once in check_sim's runs of the train set: a cap
+                                    # above that changes no force (check_sim: the same error per robot with 16 and
+                                    # 32) and shrinks the solver. Rollout on an H200 (R-MoMo, train set): 37.7 k env
+                                    # steps/s with 0, 41.0 k with 16, 48.0 k with 32, 41.9 k with 64
+                                    # (docs/benchmarks.md, "Session 35")
 
     def contact_cap(self, uses_hfield: bool) -> int | None:
         """The contact budget the env applies on a task with or without height fields (None: every slot)."""
