@@ -69,7 +69,7 @@ class CheckSimConfig:
     hfield_contacts_per_geom: int = _ENV.hfield_contacts_per_geom
     hfield_candidates: int = _ENV.hfield_candidates     # prisms per group tested exactly (0: all)
     contact_budget: int = _ENV.contact_budget     # csr / obstacle: the env's cap on contacts per env (0: none)
-    flat_contact_budget: int = _ENV.flat_contact_budget   # ft / incline: the same cap, 32 (0: none)
+    flat_contact_budget: int = _ENV.flat_contact_budget   # ft / incline: the same cap, the env's default (0: none)
     unpadded_mjx: bool = False               # also run each robot alone in MJX: the padding's share in float32
                                              # (one compilation per robot, ~10 s each on a CPU)
     x64: bool = False                        # run MJX in float64 (jax.enable_x64): with unpadded_mjx, padding_mjx

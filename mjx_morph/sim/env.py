@@ -43,7 +43,7 @@ pairs that a cheap bound says can touch) and MJX keeps at most `contact_budget` 
 tasks, the deepest (MuJoCo C has no such cap; none of 100 train robots x 3 s of random actions made more than 44).
 On ft / incline MJX keeps the `flat_contact_budget` = 32 deepest of an env's 80-101 contact slots, which changes no
 force while at most 32 contacts touch (MuJoCo C: at most 12; up to float rounding, the other slots' rows carry none)
-and shrinks the solver's constraint rows, the rollout's largest cost (+27% rollout env steps/s on an H200). Contacts otherwise as MetaMorph: condim 3,
+and shrinks the solver's constraint rows, the rollout's largest cost. Contacts otherwise as MetaMorph: condim 3,
 friction 0.7, pyramidal cone, Newton solver, Euler integrator, parent-child filtering, no exclude pairs.
 """
 from __future__ import annotations
@@ -101,9 +101,8 @@ class EnvConfig:
                                     # session 35). With self-collision an env has 80-101 contact slots, and MuJoCo C
                                     # had at most 12 touching at once in check_sim's runs of the train set: a cap
                                     # above that changes no force (check_sim: the same error per robot with 16 and
-                                    # 32) and shrinks the solver. Rollout on an H200 (R-MoMo, train set): 37.7 k env
-                                    # steps/s with 0, 41.0 k with 16, 48.0 k with 32, 41.9 k with 64
-                                    # (docs/benchmarks.md, "Session 35")
+                                    # 32) and shrinks the solver; 32 ran the rollout fastest of 0 / 16 / 32 / 64 on
+                                    # an H200 (docs/benchmarks.md, "Session 35")
 
     def contact_cap(self, uses_hfield: bool) -> int | None:
         """The contact budget the env applies on a task with or without height fields (None: every slot)."""
