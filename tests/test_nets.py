@@ -22,13 +22,13 @@ from mjx_morph.layout import NUM_TOKENS, STATE_FEATURES, Obs, Robots
 from mjx_morph.nets import ARCHS, NetConfig, distribution, make_model
 from mjx_morph.nets.network import take
 from mjx_morph.nets.recurrent import GRUCell, LSTMCell
+from mjx_morph.run import FAST_COMPILE
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = dict(d_model=16, num_layers=2, num_heads=2, ffn_dim=32, plus_hidden=24, hfield_dims=(8, 8))
 R = B = 4
 T = 6
 RECURRENT = ("rmemo", "rmomo", "grumomo", "hyperrmomo")
-FAST_COMPILE = {"xla_backend_optimization_level": 0, "xla_llvm_disable_expensive_passes": True}
 
 
 # ---------------------------------------------------------------------------------------------- counts

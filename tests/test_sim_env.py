@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 import sim_reference as ref
+from mjx_morph.run import FAST_COMPILE
 from mjx_morph.sim import fidelity, sampling, terrain
 from mjx_morph.sim.env import make_env
 from mjx_morph.sim.padding import SolverOptions
@@ -22,7 +23,6 @@ from sim_reference import available_robots
 
 EPISODE = 5
 N = 3
-FAST = {"xla_backend_optimization_level": 0, "xla_llvm_disable_expensive_passes": True}
 
 
 def _two_robots():
@@ -37,7 +37,7 @@ def _two_robots():
 def bundle(request):
     rs = _two_robots()
     env = make_env(rs, request.param, episode_length=EPISODE)
-    return env, jax.jit(env.vreset, compiler_options=FAST), jax.jit(env.vstep, compiler_options=FAST)
+    return env, jax.jit(env.vreset, compiler_options=FAST_COMPILE), jax.jit(env.vstep, compiler_options=FAST_COMPILE)
 
 
 def _reset(bundle, robots=(0, 1, 0), seed=0):

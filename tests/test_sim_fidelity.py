@@ -13,6 +13,7 @@ from mujoco import mjx
 from mujoco.mjx._src import collision_driver
 from mujoco.mjx._src.types import GeomType
 
+from mjx_morph.run import FAST_COMPILE
 from mjx_morph.sim import contact, cpu_linalg, fidelity, terrain
 from mjx_morph.sim.padding import SolverOptions
 from sim_reference import available_robots
@@ -32,8 +33,7 @@ def _robots(n: int):
 def test_padded_mjx_matches_mujoco_c_at_default_settings():
     """Padded MJX within 1e-3 m of each robot alone in MuJoCo C, and the padding's own share within issue 12's
     1e-5 m both in MuJoCo C (float64) and in MJX (padded against the robot alone, both float32)."""
-    fast = {"xla_backend_optimization_level": 0, "xla_llvm_disable_expensive_passes": True}
-    res = fidelity.compare(_robots(2), SolverOptions(), steps=25, compiler_options=fast, unpadded_mjx=True)
+    res = fidelity.compare(_robots(2), SolverOptions(), steps=25, compiler_options=FAST_COMPILE, unpadded_mjx=True)
     for r in res:
         assert r.error < fidelity.TOLERANCE, (r.name, r.error)
         assert r.padding < 1e-5, (r.name, r.padding)
@@ -42,7 +42,7 @@ def test_padded_mjx_matches_mujoco_c_at_default_settings():
         assert 0.0 < r.mjx_ulp < fidelity.TOLERANCE, (r.name, r.mjx_ulp)     # float32's own spread: not nothing
     # a slice of the robots alone in MJX: the others are not run (NaN, left out of summaries), the slice's robot gets
     # exactly its values of the whole run (same start, actions and nudges), so slices of a long check add up
-    sliced = fidelity.compare(_robots(2), SolverOptions(), steps=25, compiler_options=fast, unpadded_mjx=True,
+    sliced = fidelity.compare(_robots(2), SolverOptions(), steps=25, compiler_options=FAST_COMPILE, unpadded_mjx=True,
                               alone=range(1, 2))
     assert np.isnan([sliced[0].padding_mjx, sliced[0].mjx_alone, sliced[0].mjx_ulp]).all()
     for f in ("error", "padding", "padding_mjx", "mjx_alone", "mjx_ulp"):
@@ -83,11 +83,10 @@ def test_a_flat_contact_budget_above_the_touching_contacts_changes_nothing():
                 elif never.any():
                     assert (dist[never] != contact.INACTIVE).all(), r          # the colliders' raw distances
     assert seen > 0                      # the two robots differ in limbs: one has unused slots
-    fast = {"xla_backend_optimization_level": 0, "xla_llvm_disable_expensive_passes": True}
-    for r in fidelity.compare(robots, SolverOptions(contact_budget=12), steps=25, compiler_options=fast):
+    for r in fidelity.compare(robots, SolverOptions(contact_budget=12), steps=25, compiler_options=FAST_COMPILE):
         assert r.mjx < 1e-4 and r.error < fidelity.TOLERANCE, (r.name, r.mjx, r.error)
         assert 1 < r.contacts <= 12, (r.name, r.contacts)       # MuJoCo C's most touching contacts: under the budget
-    for r in fidelity.compare(robots, SolverOptions(contact_budget=1), steps=25, compiler_options=fast):
+    for r in fidelity.compare(robots, SolverOptions(contact_budget=1), steps=25, compiler_options=FAST_COMPILE):
         assert r.error > fidelity.TOLERANCE, (r.name, r.error)
 
 
@@ -95,8 +94,8 @@ def test_float64_mjx_isolates_the_padding():
     """With MJX in float64 (`x64=True`) the padded-vs-alone comparison in MJX carries no float32 rounding: one ulp of
     the start state moves the robot by ~1e-15 m, and the padding's share in MJX is the one MuJoCo C (float64) shows
     (measured 1.1e-7 against 1.1e-7 m), so issue 12's bound on the padding's own error is checked in MJX itself."""
-    fast = {"xla_backend_optimization_level": 0, "xla_llvm_disable_expensive_passes": True}
-    (r,) = fidelity.compare(_robots(1), SolverOptions(), steps=25, compiler_options=fast, unpadded_mjx=True, x64=True)
+    (r,) = fidelity.compare(_robots(1), SolverOptions(), steps=25, compiler_options=FAST_COMPILE, unpadded_mjx=True,
+                            x64=True)
     assert r.mjx_ulp < 1e-12, r.mjx_ulp
     assert 0.0 < r.padding_mjx < 1e-5, r.padding_mjx
     assert abs(r.padding_mjx - r.padding) < 0.05 * r.padding, (r.padding_mjx, r.padding)

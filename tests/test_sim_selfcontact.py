@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 from mujoco.mjx._src import collision_driver
 
+from mjx_morph.run import FAST_COMPILE
 from mjx_morph.sim import fidelity, padding, processes, selfcontact
 from mjx_morph.sim.model import build_stacked_model, compile_padded, self_pair_summary
 from mjx_morph.sim.padding import SolverOptions
@@ -188,7 +189,6 @@ def test_limb_pair_budget_loses_no_pair(robots):
     assert budget == limb_pair_budget(tree, with_budget.options) and budget < limb_pairs     # it does cull
     assert without.options.self_pair_budget is None
     assert with_budget.self_contact.mjx_contacts < without.self_contact.mjx_contacts
-    fast = {"xla_backend_optimization_level": 0, "xla_llvm_disable_expensive_passes": True}
     rng = np.random.default_rng(0)
     nu = with_budget.mj_models[0].nu
     ctrls = jnp.asarray(rng.uniform(-1, 1, (len(robots), 15, nu)), jnp.float32)
@@ -207,7 +207,7 @@ def test_limb_pair_budget_loses_no_pair(robots):
                 limbs = jnp.all(jnp.asarray(m.geom_type)[con.geom] == 3, axis=1)   # capsule-capsule
                 return d, (d.xpos, jnp.sum(active), jnp.sum(active & limbs))
             return jax.lax.scan(control, d, ctrl)[1]
-        return jax.jit(jax.vmap(run), compiler_options=fast)(jnp.arange(len(robots)), ctrls)
+        return jax.jit(jax.vmap(run), compiler_options=FAST_COMPILE)(jnp.arange(len(robots)), ctrls)
 
     (xa, na, la), (xb, nb, lb) = rollout(with_budget), rollout(without)
     np.testing.assert_allclose(np.asarray(xa), np.asarray(xb), atol=1e-5)
