@@ -8,10 +8,8 @@ train step lowered with a few helper functions no longer shared, missed the cach
 test module, and each value built once per session, starts from empty in-memory caches (`jax.clear_caches`), so that a
 program lowers as in a fresh process and is compiled once per suite.
 
-Every program, in this process and in the processes the tests start (they inherit the environment), compiles with
-XLA's newer CPU fusion emitters off (`XLA_FLAGS`, set before JAX starts): on the 2-core CI machine
-tests/test_sim_fidelity.py and tests/test_train_loop.py took 286 s each instead of 403 and 374 (docs/benchmarks.md,
-"CPU notes"); the fast compile options of tests and smoke runs (`FAST_COMPILE`) turn them off too."""
+Most of the suite's programs compile with `FAST_COMPILE` (mjx_morph/ppo/trainer.py: XLA's optimisations and its
+newer CPU fusion emitters off), directly or through a config's `fast_compile`."""
 from __future__ import annotations
 
 import fcntl
@@ -19,15 +17,11 @@ import json
 import os
 from pathlib import Path
 
-CPU_FLAGS = "--xla_cpu_use_fusion_emitters=false"
-if CPU_FLAGS not in os.environ.get("XLA_FLAGS", ""):
-    os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {CPU_FLAGS}".strip()
-
-import jax  # noqa: E402  (after XLA_FLAGS)
+import jax
 import pytest
 
-from mjx_morph.run import use_compile_cache  # noqa: E402
-from mjx_morph.unimal.sets import unimals_root  # noqa: E402
+from mjx_morph.run import use_compile_cache
+from mjx_morph.unimal.sets import unimals_root
 
 NO_UNIMALS = ("the original robots (../shared/unimals_100 or $MJX_MORPH_UNIMALS) are not available; "
               "this test needs them")
