@@ -22,7 +22,8 @@ PARAM_TOLERANCE = 1e-6
 
 @pytest.fixture(scope="module")
 def four_devices():
-    env = {**os.environ, "XLA_FLAGS": "--xla_force_host_platform_device_count=4", "JAX_PLATFORMS": "cpu",
+    env = {**os.environ, "XLA_FLAGS": f"{os.environ['XLA_FLAGS']} --xla_force_host_platform_device_count=4",
+           "JAX_PLATFORMS": "cpu",
            "PYTHONPATH": os.pathsep.join([str(HERE), str(HERE.parent), os.environ.get("PYTHONPATH", "")])}
     p = subprocess.run([sys.executable, str(HERE / "multi_device_run.py"), "4"], env=env, capture_output=True,
                        text=True, timeout=900)

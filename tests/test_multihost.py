@@ -39,7 +39,8 @@ def two_processes(tmp_path_factory):
     [stderr])."""
     out = tmp_path_factory.mktemp("multihost")
     port = free_port()
-    base = {**os.environ, "XLA_FLAGS": "--xla_force_host_platform_device_count=2", "JAX_PLATFORMS": "cpu",
+    base = {**os.environ, "XLA_FLAGS": f"{os.environ['XLA_FLAGS']} --xla_force_host_platform_device_count=2",
+            "JAX_PLATFORMS": "cpu",
             "PYTHONPATH": os.pathsep.join([str(HERE), str(HERE.parent), os.environ.get("PYTHONPATH", "")]),
             "MJX_MORPH_COORDINATOR": f"127.0.0.1:{port}", "MJX_MORPH_NUM_PROCESSES": str(PROCESSES)}
     procs = [subprocess.Popen([sys.executable, str(HERE / "multi_process_run.py"), str(out)],
