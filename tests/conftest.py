@@ -9,11 +9,9 @@ test module, and each value built once per session, starts from empty in-memory 
 program lowers as in a fresh process and is compiled once per suite.
 
 Every program, in this process and in the processes the tests start (they inherit the environment), compiles with
-XLA's newer CPU fusion emitters off (`XLA_FLAGS`, set before JAX starts; `FAST_COMPILE` turns them off too): on the
-2-core CI machine the suite took 2663 s of test time with the flag, 2846 s with it in `FAST_COMPILE` alone and 3543 s
-without it. It speeds the fast-compiled programs and the optimised physics (the incline fidelity check: 33-35 s
-against 42-45) and slows one optimised train step measured (the CPU demo's), so only the tests set it for every
-program (docs/benchmarks.md, "CPU notes")."""
+XLA's newer CPU fusion emitters off (`XLA_FLAGS`, set before JAX starts; `FAST_COMPILE` turns them off too): the
+suite runs ~25% shorter with it. It slows the CPU demo's optimised train step, so only the tests set it for every
+program (the measurements: docs/benchmarks.md, "CPU notes", session 36)."""
 from __future__ import annotations
 
 import fcntl

@@ -142,9 +142,8 @@ class Transition(NamedTuple):
 
 
 #: XLA CPU options for small programs whose compile time dominates (tests, smoke runs): ~2x faster compiles. XLA's
-#: newer CPU fusion emitters (MLIR) are off too: with the optimisations off, on 2 cores, the smoke R-MoMo iteration
-#: compiled in 34 s instead of 43 and ran in 3.7 s instead of 4.7; with them on (the CPU demo's program) the same
-#: switch is slower, 109-116 s against 69-70 (docs/benchmarks.md, "CPU notes")
+#: newer CPU fusion emitters (MLIR) are off too, which compiles and runs these unoptimised programs faster (and an
+#: optimised one slower: not a default elsewhere; docs/benchmarks.md, "CPU notes", session 36)
 FAST_COMPILE = {"xla_backend_optimization_level": 0, "xla_llvm_disable_expensive_passes": True,
                 "xla_cpu_use_fusion_emitters": False}
 
