@@ -30,9 +30,17 @@ def toy_trainer(arch: str, devices: int | None, total_steps: int = 8 * 16 * 10, 
                    seeds=seeds)
 
 
-def update_collectives(trainer: Trainer, ts) -> list[list]:
-    """[op, elements] of every collective in the compiled update (the minibatch loop) of `trainer`."""
-    ts, batch, _ = trainer.rollout(ts)
+def iteration(trainer: Trainer, ts):
+    """One iteration as a run takes it by default (`phase_timing`): the rollout and the update, two jitted calls.
+    -> (state, metrics, the rollout's batch)."""
+    ts, batch, m1 = trainer.rollout(ts)
+    ts, m2 = trainer.update(ts, batch)
+    return ts, {**m1, **m2}, batch
+
+
+def update_collectives(trainer: Trainer, ts, batch) -> list[list]:
+    """[op, elements] of every collective in the compiled update (the minibatch loop) of `trainer`, for the state
+    `ts` and `batch` it last updated with (its program is then compiled already: lowering it again is free)."""
     out = []
     for line in trainer.update.lower(ts, batch).compile().as_text().splitlines():
         m = re.search(r"= (.*?) (all-gather|all-reduce|all-to-all|collective-permute|reduce-scatter)(-start)?\(", line)
@@ -51,26 +59,27 @@ def run(arch: str, devices: int, iters: int = 3, seed: int = 0, blocks: int | No
     ts = trainer.init(jax.random.PRNGKey(seed))
     rows = []
     for _ in range(iters):
-        ts, m = trainer.iteration(ts)
+        last = ts
+        ts, m, batch = iteration(trainer, ts)
         rows.append({k: float(v) for k, v in m.items()})
     shards = len(ts.carry["actor"]["h"].sharding.device_set) if trainer.model.recurrent else \
         len(ts.first.sharding.device_set)
-    return ts, rows, shards, trainer
+    return ts, rows, shards, trainer, (last, batch)
 
 
 def main(n: int) -> None:
     assert len(jax.devices()) == n, jax.devices()
     out = {}
     for arch in ("rmomo", "metamorph"):
-        one, rows1, s1, one_trainer = run(arch, 1, blocks=n)      # the minibatches of n devices: n blocks of envs
-        many, rows_n, s_n, many_trainer = run(arch, n)
+        one, rows1, s1, one_trainer, _ = run(arch, 1, blocks=n)   # the minibatches of n devices: n blocks of envs
+        many, rows_n, s_n, many_trainer, last_update = run(arch, n)
         diff = max(float(np.abs(np.asarray(a) - np.asarray(b)).max())
                    for a, b in zip(jax.tree.leaves(one.params), jax.tree.leaves(many.params)))
         env_diff = float(np.abs(np.asarray(one.env.obs.proprio) - np.asarray(many.env.obs.proprio)).max())
         out[arch] = {"param_diff": diff, "env_diff": env_diff, "shards": [s1, s_n],
                      "minibatches": [r["minibatches"] for r in rows1], "minibatches_n": [r["minibatches"] for r in rows_n],
                      "loss": [r["loss"] for r in rows1], "loss_n": [r["loss"] for r in rows_n],
-                     "collectives": update_collectives(many_trainer, many),
+                     "collectives": update_collectives(many_trainer, *last_update),
                      "params": int(sum(np.size(x) for x in jax.tree.leaves(many.params))),
                      "tables": int(sum(np.prod(x.shape) for x in jax.tree.leaves(jax.eval_shape(
                          one_trainer.model.robot_cache, one.params, one_trainer.env.robots))))}
@@ -78,7 +87,7 @@ def main(n: int) -> None:
             trainer = toy_trainer(arch, n, seeds=2, blocks=n)
             ts = trainer.init(seed_keys([0, 1]))
             for _ in range(3):
-                ts, _ = trainer.iteration(ts)
+                ts, _, _ = iteration(trainer, ts)
             alone = [one, run(arch, 1, seed=1, blocks=n, trainer=one_trainer)[0]]     # the same 1-device program
             out["seeds"] = {"mesh": dict(trainer.mesh.shape), "shards": len(ts.first.sharding.device_set),
                             "param_diff": max(float(np.abs(np.asarray(a) - np.asarray(b)).max())
