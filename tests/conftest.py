@@ -43,8 +43,8 @@ def unimals():
 
 ROOT = Path(__file__).resolve().parents[1]
 # self-collision pair searches kept beside the compiled programs (keyed by selfcontact.py's source), shared by the
-# workers and the processes the tests start: a rerun of the suite skips them (test_find_robot 21 s -> 9 s: the
-# held-out gen/test set's 100 robots); the tests of the disk cache itself point it elsewhere
+# workers and the processes the tests start, so a rerun of the suite skips them (docs/benchmarks.md, "CPU notes",
+# session 37); the tests of the disk cache itself point it elsewhere
 os.environ["MJX_MORPH_PAIR_CACHE"] = str(ROOT / ".pytest_cache" / "pairs")
 os.environ.setdefault("MJX_MORPH_XLA_CACHE", str(ROOT / ".pytest_cache" / "xla"))
 use_compile_cache(os.environ["MJX_MORPH_XLA_CACHE"], min_compile_s=1.0)

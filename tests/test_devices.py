@@ -3,7 +3,7 @@ the same global batch. Checked on N = 4 virtual CPU devices in a fresh process (
 starts): after 3 iterations of R-MoMo and MetaMorph, parameters and env states equal the 1-device run's up to the
 order of summation, and the env axis is really spread over the 4 devices. The iterations run as a run takes them by
 default (rollout and update, two jitted calls), so the update's compiled text is read without compiling it again
-(~16 s less); the fused iteration over several devices is tests/test_multihost.py's."""
+(docs/benchmarks.md, "CPU notes"); the fused iteration over several devices is tests/test_multihost.py's."""
 from __future__ import annotations
 
 import json
