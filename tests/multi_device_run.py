@@ -39,8 +39,8 @@ def iteration(trainer: Trainer, ts):
 
 
 def update_collectives(trainer: Trainer, ts, batch) -> list[list]:
-    """[op, elements] of every collective in the compiled update (the minibatch loop) of `trainer`, for the state
-    `ts` and `batch` it last updated with (its program is then compiled already: lowering it again is free)."""
+    """[op, elements] of every collective in the compiled update (the minibatch loop) of `trainer`, lowered for a
+    state and batch like those it has run on (its program is then compiled already: lowering it again is free)."""
     out = []
     for line in trainer.update.lower(ts, batch).compile().as_text().splitlines():
         m = re.search(r"= (.*?) (all-gather|all-reduce|all-to-all|collective-permute|reduce-scatter)(-start)?\(", line)
@@ -59,12 +59,11 @@ def run(arch: str, devices: int, iters: int = 3, seed: int = 0, blocks: int | No
     ts = trainer.init(jax.random.PRNGKey(seed))
     rows = []
     for _ in range(iters):
-        last = ts
         ts, m, batch = iteration(trainer, ts)
         rows.append({k: float(v) for k, v in m.items()})
     shards = len(ts.carry["actor"]["h"].sharding.device_set) if trainer.model.recurrent else \
         len(ts.first.sharding.device_set)
-    return ts, rows, shards, trainer, (last, batch)
+    return ts, rows, shards, trainer, batch
 
 
 def main(n: int) -> None:
@@ -72,14 +71,14 @@ def main(n: int) -> None:
     out = {}
     for arch in ("rmomo", "metamorph"):
         one, rows1, s1, one_trainer, _ = run(arch, 1, blocks=n)   # the minibatches of n devices: n blocks of envs
-        many, rows_n, s_n, many_trainer, last_update = run(arch, n)
+        many, rows_n, s_n, many_trainer, batch = run(arch, n)
         diff = max(float(np.abs(np.asarray(a) - np.asarray(b)).max())
                    for a, b in zip(jax.tree.leaves(one.params), jax.tree.leaves(many.params)))
         env_diff = float(np.abs(np.asarray(one.env.obs.proprio) - np.asarray(many.env.obs.proprio)).max())
         out[arch] = {"param_diff": diff, "env_diff": env_diff, "shards": [s1, s_n],
                      "minibatches": [r["minibatches"] for r in rows1], "minibatches_n": [r["minibatches"] for r in rows_n],
                      "loss": [r["loss"] for r in rows1], "loss_n": [r["loss"] for r in rows_n],
-                     "collectives": update_collectives(many_trainer, *last_update),
+                     "collectives": update_collectives(many_trainer, many, batch),
                      "params": int(sum(np.size(x) for x in jax.tree.leaves(many.params))),
                      "tables": int(sum(np.prod(x.shape) for x in jax.tree.leaves(jax.eval_shape(
                          one_trainer.model.robot_cache, one.params, one_trainer.env.robots))))}
