@@ -134,7 +134,8 @@ def dot_product_attention(q: jax.Array, k: jax.Array, v: jax.Array, key_mask: ja
     """Self-attention through `jax.nn.dot_product_attention`: q, k, v [..., T, D], key_mask [..., T] -> [..., T, D]."""
     *lead, t, d = q.shape
     heads = lambda x: x.reshape(-1, t, num_heads, d // num_heads)
-    mask = key_mask.reshape(-1, 1, 1, t)                 # (batch, heads, queries, keys)
+    # (batch, heads, queries, keys), the query axis full: cuDNN's kernel takes no mask broadcast over queries
+    mask = jnp.broadcast_to(key_mask.reshape(-1, 1, 1, t), (math.prod(lead), 1, t, t))
     out = jax.nn.dot_product_attention(heads(q), heads(k), heads(v), mask=mask, implementation=implementation)
     return out.reshape(*lead, t, d)
 
