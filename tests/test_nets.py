@@ -785,3 +785,25 @@ def test_attention_through_dot_product_attention_is_the_same_function(arch):
         make_model("modumorph", hfield=False, decoder_dims=[], attention="xla")
     with pytest.raises(ValueError, match="attention='flash'; expected one of einsum, xla, cudnn"):
         make_model("metamorph", hfield=False, decoder_dims=[], attention="flash")
+
+
+def test_dot_product_attention_mask_spans_the_query_axis(monkeypatch):
+    """The key mask reaches `jax.nn.dot_product_attention` as [batch, 1, queries, keys] with the query axis full:
+    cuDNN's kernel (attention=cudnn, GPU only) refuses a mask broadcast over the queries (it failed so in session
+    38), so this CPU test holds the shape it needs, and the result still masks the padded keys."""
+    from mjx_morph.nets.layers import dot_product_attention
+    seen = []
+    real = jax.nn.dot_product_attention
+
+    def spy(q, k, v, mask=None, implementation=None, **kw):
+        seen.append(mask.shape)
+        return real(q, k, v, mask=mask, implementation=None, **kw)
+    monkeypatch.setattr(jax.nn, "dot_product_attention", spy)
+    t, d, heads = 5, 8, 2
+    q, k, v = (jax.random.normal(jax.random.PRNGKey(i), (3, t, d)) for i in range(3))
+    keep = jnp.array([[1, 1, 1, 0, 0]] * 3, bool)
+    out = dot_product_attention(q, k, v, keep, heads, "cudnn")
+    assert seen == [(3, 1, t, t)]
+    # padded keys carry no weight: changing their values changes nothing
+    v2 = v.at[:, 3:].set(100.0)
+    np.testing.assert_allclose(out, dot_product_attention(q, k, v2, keep, heads, "xla"), rtol=1e-5, atol=1e-5)
