@@ -133,3 +133,39 @@ def test_xla_cache_packs_training_programs_before_the_others(tmp_path):
     with tarfile.open(tmp_path / "out.tar.gz") as tar:
         assert [n.split("-")[0] + n.split("-")[1][:1] for n in tar.getnames()] == \
             ["jit__rollout1", "jit__update0", "jit__sweep2"]
+
+
+def test_fit_shrinks_the_carried_cache_to_the_room_the_checkout_leaves(tmp_path):
+    """`device_job.sh fit` (here, after copying a lease's cache to .gpu/): what travels is at most 64 MiB, the
+    checkout grows with the results, and the cache gives way: its first programs (pack's order, the most useful) stay,
+    with their times (unpack ranks the carried ones by them), the rest go; a cache that fits is left as it was."""
+    import os
+    import sys
+    sys.path.insert(0, str(SCRIPT.parent))
+    try:
+        import xla_cache
+    finally:
+        sys.path.pop(0)
+    cache = tmp_path / "xla"
+    cache.mkdir()
+    for age, name in enumerate(["jit__update-a-cache", "jit__rollout-b-cache", "jit_sweep-c-cache"]):
+        (cache / name).write_bytes(os.urandom(3 * 2 ** 20))         # 3 MiB each, incompressible
+        os.utime(cache / name, (1_000_000 + age, 1_000_000 + age))
+    repo = tmp_path / "repo"
+    (repo / ".gpu").mkdir(parents=True)
+    archive = repo / ".gpu" / "xla-cache.tar.gz"
+    xla_cache.pack(cache, archive)
+    subprocess.run(["git", "init", "-q"], cwd=repo, check=True)
+    (repo / ".gitignore").write_text(".gpu/\n")
+    r = job("fit", cwd=repo)                       # 9 MiB of cache, nothing else: it fits
+    assert r.returncode == 0 and "3 of 3 compiled programs kept" in r.stdout, r.stdout + r.stderr
+    (repo / "results.bin").write_bytes(os.urandom(55 * 2 ** 20))   # the checkout grows: 64 - 55 - 1 < 9 MiB
+    r = job("fit", cwd=repo)
+    assert r.returncode == 0 and "2 of 3 compiled programs kept" in r.stdout, r.stdout + r.stderr
+    back = tmp_path / "back"
+    assert xla_cache.unpack(archive, back) == 2
+    assert sorted(p.name for p in back.iterdir()) == ["jit__rollout-b-cache", "jit__update-a-cache"]
+    assert (back / "jit__update-a-cache").stat().st_mtime == 1_000_000
+    assert (back / "jit__rollout-b-cache").read_bytes() == (cache / "jit__rollout-b-cache").read_bytes()
+    r = job("fit", cwd=tmp_path / "back")           # no .gpu/xla-cache.tar.gz: nothing to do
+    assert r.returncode == 0 and "nothing to fit" in r.stdout

@@ -2,6 +2,7 @@
 smoke runs, run directory contents, resume equivalence, and clear errors for bad configs and checkpoints."""
 from __future__ import annotations
 
+import math
 import os
 import shutil
 import signal
@@ -336,3 +337,22 @@ def test_progress_lines_without_the_bar(capsys):
     assert ProgressBar in callbacks() and ProgressLines not in callbacks()
     assert ProgressLines in callbacks(progress=False)
     assert ProgressLines not in callbacks(progress=False, progress_every_min=None)
+
+
+def test_metrics_csv_keeps_float32_exactly_in_few_digits(tmp_path):
+    """metrics.csv writes each metric as the shortest text that reads back as the same float32 (the learner's
+    metrics are float32) and whole numbers as integers: half the bytes of float64's 17 digits, nothing lost."""
+    import numpy as np
+    run = RunDir(tmp_path / "r", {"seed": 0})
+    run.create()
+    row = {"iteration": 1, "env_steps": 81920, "approx_kl": np.float32(0.00867781788110733), "episodes": 589.0,
+           "lr": 3.000000106112566e-05, "first_kl": np.float32(-3.632158e-09), "wall_s": 92.677149113,
+           "loss": float("nan")}
+    run.log(row)
+    run.close()
+    text = (tmp_path / "r" / "metrics.csv").read_text().splitlines()[1]
+    assert text == "1,81920,0.008677818,589,3.0000001e-05,-3.632158e-09,92.67715,nan"
+    back = RunDir(tmp_path / "r").read_metrics()[0]
+    for k in ("approx_kl", "lr", "first_kl"):
+        assert np.float32(back[k]) == np.float32(row[k]), k
+    assert back["episodes"] == 589 and math.isnan(back["loss"]) and abs(back["wall_s"] - 92.677149113) < 1e-4

@@ -28,9 +28,10 @@ set -o pipefail
 if [ "$1" = prepare ]; then
   [ -d ../shared ] || { echo "../shared is missing: clone the project beside it" >&2; exit 2; }
   ls .whl/*.whl >/dev/null 2>&1 || ../shared/tools/gpu-wheels.sh || exit 1
-  # mujoco-studio is MuJoCo's viewer (12.8 MB of the 64 MiB a call carries): neither training nor evaluation imports
-  # it (`mujoco` and `mujoco.mjx` import without it), so it stays here
-  rm -f .whl/mujoco_studio-*.whl
+  # mujoco-studio is MuJoCo's viewer (12.8 MB of the 64 MiB a call carries) and pyopengl (3.2 MB) serves rendering
+  # alone: neither training nor evaluation imports them (`mujoco` and `mujoco.mjx` import without them; a smoke run
+  # with OpenGL unimportable trains and evaluates), so they stay here. Rendering on the GPU host would need pyopengl.
+  rm -f .whl/mujoco_studio-*.whl .whl/pyopengl-*.whl
   [ -d .gpu/unimals_100 ] || { mkdir -p .gpu && cp -r ../shared/unimals_100 .gpu/; } || exit 1
   py=python3; [ -x .venv/bin/python ] && py=.venv/bin/python
   rm -rf .gpu/pairs      # the searches of an earlier version of selfcontact.py are never read again: not carried
@@ -44,7 +45,30 @@ if __name__ == "__main__":      # the search processes are spawned: they import 
         print(f"self-collision pairs of {name} ({len(robots)} robots): {time.perf_counter() - t:.1f} s")
 ' || exit 1
   du -shc .whl .gpu | tail -1 | sed 's/total/to carry (64 MiB at most with the checkout)/'
-  exit 0
+  exec bash "$0" fit
+fi
+# Here, after copying a lease's xla-cache.tar.gz to .gpu/:   bash tools/device_job.sh fit
+#   A call takes at most 64 MiB: the checkout's files (tracked and untracked-not-ignored) and the carried .whl and .gpu.
+#   The device tool refused 63.6 MiB of files in 230 folders (session 39), so it seems to count 4 KiB a folder too.
+#   The checkout grows with every session's results; the carried compilation cache is what gives way: fit keeps its
+#   first (most useful, tools/xla_cache.py) programs within the room the rest leaves, less 1 MiB.
+if [ "$1" = fit ]; then
+  cache=.gpu/xla-cache.tar.gz
+  [ -f $cache ] || { echo "[device_job] no $cache: nothing to fit"; exit 0; }
+  room=$( { git ls-files -z; git ls-files -z --others --exclude-standard; find .whl .gpu -type f ! -path $cache -print0 2>/dev/null; } |
+    python3 -c '
+import os, sys
+files = [f for f in sys.stdin.read().split("\0") if f and os.path.isfile(f)]
+folders = {os.path.dirname(f) for f in files}
+for d in list(folders):
+    while d:
+        d = os.path.dirname(d)
+        folders.add(d)
+used = sum(os.path.getsize(f) for f in files) + 4096 * len(folders)
+print(f"{(64 * 2 ** 20 - used) / 2 ** 20 - 1:.2f}")')
+  echo "[device_job] the checkout, .whl and .gpu without the cache: $(python3 -c "print(f'{64 - 1 - $room:.1f}')") MiB of 64"
+  python3 "$(dirname "$0")/xla_cache.py" fit $cache "$room"
+  exit $?
 fi
 continuing=0
 [ "$1" = --continue ] && { continuing=1; shift; }

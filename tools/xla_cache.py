@@ -2,6 +2,7 @@
 
     python3 tools/xla_cache.py pack <cache dir> <archive.tar.gz> [max MiB]    # this lease's programs first
     python3 tools/xla_cache.py unpack <archive.tar.gz> <cache dir>
+    python3 tools/xla_cache.py fit <archive.tar.gz> <max MiB>       # here: keep its first programs within max MiB
 
 A fresh machine compiles the train step for ~100-150 s in a lease's first call; the programs compiled in an earlier
 lease serve it when they travel (`.gpu/xla-cache.tar.gz`, carried). JAX reads an entry only when its key matches: the
@@ -80,6 +81,28 @@ def unpack(archive: Path, cache: Path) -> int:
     return len(members)
 
 
+def fit(archive: Path, max_mb: float) -> tuple[int, int]:
+    """Rewrite `archive` with its first members (pack's order: the most useful first) while their sizes add up to at
+    most `max_mb` MiB (one that would cross it is left out, as in `pack`), their times kept for `unpack`; so the carry stays within what a call takes when the checkout
+    grows (tools/device_job.sh fit). Returns (members kept, members before)."""
+    limit, size = int(max_mb * 2 ** 20), 0
+    with tarfile.open(archive, "r:gz") as tar:
+        members = [m for m in tar.getmembers() if m.isfile()]
+        keep = []
+        for m in members:
+            if size + m.size > limit:
+                continue
+            size += m.size
+            keep.append(m)
+        if len(keep) < len(members):
+            tmp = archive.with_name(archive.name + ".part")
+            with tarfile.open(tmp, "w:gz") as out:
+                for m in keep:
+                    out.addfile(m, tar.extractfile(m))
+            tmp.replace(archive)
+    return len(keep), len(members)
+
+
 def main(argv: list[str]) -> int:
     if len(argv) >= 3 and argv[0] == "pack":
         cache, archive = Path(argv[1]), Path(argv[2])
@@ -95,8 +118,13 @@ def main(argv: list[str]) -> int:
         print(f"[xla_cache] {n} compiled programs from {argv[1]} in {argv[2]} (used only where the GPU model, JAX "
               "and the program are the same)")
         return 0
+    if len(argv) == 3 and argv[0] == "fit":
+        kept, count = fit(Path(argv[1]), float(argv[2]))
+        print(f"[xla_cache] {argv[1]}: {kept} of {count} compiled programs kept within {float(argv[2]):.1f} MiB "
+              f"({Path(argv[1]).stat().st_size / 2 ** 20:.1f} MiB packed)")
+        return 0
     print("usage: python3 tools/xla_cache.py pack <cache dir> <archive.tar.gz> [max MiB] | "
-          "unpack <archive.tar.gz> <cache dir>", file=sys.stderr)
+          "unpack <archive.tar.gz> <cache dir> | fit <archive.tar.gz> <max MiB>", file=sys.stderr)
     return 2
 
 
