@@ -2,6 +2,7 @@
 smoke runs, run directory contents, resume equivalence, and clear errors for bad configs and checkpoints."""
 from __future__ import annotations
 
+import json
 import math
 import os
 import shutil
@@ -356,3 +357,16 @@ def test_metrics_csv_keeps_float32_exactly_in_few_digits(tmp_path):
     for k in ("approx_kl", "lr", "first_kl"):
         assert np.float32(back[k]) == np.float32(row[k]), k
     assert back["episodes"] == 589 and math.isnan(back["loss"]) and abs(back["wall_s"] - 92.677149113) < 1e-4
+
+
+def test_eval_json_floats_keep_float32_precision():
+    """eval/*.json store floats at float32's precision (shortest text), whole numbers and non-numbers as they were."""
+    import numpy as np
+    from mjx_morph.run.run_dir import at_float32
+    tree = {"mean_return": 1891.3029393490808, "env_steps": 20070400.0, "per_robot": {"a": 0.1234567891234},
+            "trace": [1e-9 / 3, 2, True, None], "ci": float("nan"), "set": "unimal100/test70"}
+    out = at_float32(tree)
+    assert json.dumps(out["mean_return"]) == "1891.303" and out["env_steps"] == 20070400.0
+    assert np.float32(out["per_robot"]["a"]) == np.float32(0.1234567891234)
+    assert out["trace"][1:] == [2, True, None] and json.dumps(out["trace"][0]) == "3.3333333e-10"
+    assert math.isnan(out["ci"]) and out["set"] == "unimal100/test70"

@@ -35,6 +35,7 @@ import jax
 import numpy as np
 
 from ..run import FAST_COMPILE, Callback, RunConfig, load_run, make_env_for, to_dict, train_robots
+from ..run.run_dir import at_float32
 from ..sim.processes import lower_thread_priority
 from ..unimal.morphology import Morphology
 from ..unimal.sets import load_set
@@ -207,6 +208,7 @@ def evaluate_run(run_dir: str | Path, sets: Iterable[str | EvalSet] = ("train", 
             summary["zero_state_steps"] = int(zero_state_steps)
             summary["reward_trace_zero_state"] = z.reward.mean(axis=1).tolist()
             summary["mean_return_zero_state"] = float(z.ret.mean())
+        summary = at_float32(summary)               # what eval/<tag>.json holds, returned as written
         _write(out_dir, es, res, robot_of, episode_of, summary, task)
         summaries[es.tag] = summary
         extra = "".join(f"; {c} {s['mean_return']:.1f}" for c, s in summary.get("per_change", {}).items())

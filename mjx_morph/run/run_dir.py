@@ -100,6 +100,19 @@ def _cell(value: int | float | str) -> int | str:
     return str(np.float32(x))
 
 
+def at_float32(tree):
+    """Every float of a JSON-like tree (dicts, lists) at float32's precision, as the float whose text is float32's
+    shortest: what eval/*.json store (returns are sums of float32 rewards; 7 digits are all they hold), ~30% fewer
+    bytes than float64's 17 digits in the committed results."""
+    if isinstance(tree, dict):
+        return {k: at_float32(v) for k, v in tree.items()}
+    if isinstance(tree, (list, tuple)):
+        return [at_float32(v) for v in tree]
+    if isinstance(tree, float) and math.isfinite(tree) and not tree.is_integer():
+        return float(str(np.float32(tree)))
+    return tree
+
+
 def _write_atomic(path: Path, text: str) -> None:
     """Write a file whole or not at all (other processes may read it meanwhile)."""
     tmp = path.with_name(path.name + ".tmp")
