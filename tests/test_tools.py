@@ -167,5 +167,8 @@ def test_fit_shrinks_the_carried_cache_to_the_room_the_checkout_leaves(tmp_path)
     assert sorted(p.name for p in back.iterdir()) == ["jit__rollout-b-cache", "jit__update-a-cache"]
     assert (back / "jit__update-a-cache").stat().st_mtime == 1_000_000
     assert (back / "jit__rollout-b-cache").read_bytes() == (cache / "jit__rollout-b-cache").read_bytes()
+    (repo / "results.bin").write_bytes(os.urandom(64 * 2 ** 20))   # no room at all: said, and the cache kept
+    r = job("fit", cwd=repo)
+    assert r.returncode == 1 and "no room for .gpu/xla-cache.tar.gz" in r.stderr and archive.stat().st_size > 2 ** 20
     r = job("fit", cwd=tmp_path / "back")           # no .gpu/xla-cache.tar.gz: nothing to do
     assert r.returncode == 0 and "nothing to fit" in r.stdout

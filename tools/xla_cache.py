@@ -83,8 +83,8 @@ def unpack(archive: Path, cache: Path) -> int:
 
 def fit(archive: Path, max_mb: float) -> tuple[int, int]:
     """Rewrite `archive` with its first members (pack's order: the most useful first) while their sizes add up to at
-    most `max_mb` MiB (one that would cross it is left out, as in `pack`), their times kept for `unpack`; so the carry stays within what a call takes when the checkout
-    grows (tools/device_job.sh fit). Returns (members kept, members before)."""
+    most `max_mb` MiB (one that would cross it is left out, as in `pack`), their times kept for `unpack`: so the carry
+    stays within what a call takes as the checkout grows (tools/device_job.sh fit). Returns (members kept, before)."""
     limit, size = int(max_mb * 2 ** 20), 0
     with tarfile.open(archive, "r:gz") as tar:
         members = [m for m in tar.getmembers() if m.isfile()]
@@ -119,6 +119,10 @@ def main(argv: list[str]) -> int:
               "and the program are the same)")
         return 0
     if len(argv) == 3 and argv[0] == "fit":
+        if float(argv[2]) <= 0:
+            print(f"[xla_cache] no room for {argv[1]}: what else travels takes the 64 MiB already; carry less",
+                  file=sys.stderr)
+            return 1
         kept, count = fit(Path(argv[1]), float(argv[2]))
         print(f"[xla_cache] {argv[1]}: {kept} of {count} compiled programs kept within {float(argv[2]):.1f} MiB "
               f"({Path(argv[1]).stat().st_size / 2 ** 20:.1f} MiB packed)")
