@@ -11,6 +11,17 @@ def job(*args, cwd, out=None, **extra_env):
     return subprocess.run(["bash", str(SCRIPT), *args], cwd=cwd, env=env, capture_output=True, text=True)
 
 
+def load_xla_cache():
+    """tools/xla_cache.py as a module (tools/ is not a package)."""
+    import sys
+    sys.path.insert(0, str(SCRIPT.parent))
+    try:
+        import xla_cache
+    finally:
+        sys.path.pop(0)
+    return xla_cache
+
+
 def test_continue_refuses_a_fresh_machine_and_runs_nothing(tmp_path):
     marker = tmp_path / "ran"
     r = job("--continue", "fp32", "touch", str(marker), cwd=tmp_path, out=tmp_path)
@@ -43,11 +54,7 @@ def test_xla_cache_travels_oldest_programs_first_within_its_size(tmp_path):
     byte, and the CLI says what it did."""
     import os
     import sys
-    sys.path.insert(0, str(SCRIPT.parent))
-    try:
-        import xla_cache
-    finally:
-        sys.path.pop(0)
+    xla_cache = load_xla_cache()
     cache = tmp_path / "xla"
     (cache / "sub").mkdir(parents=True)
     sizes = {"train-step": 600_000, "init": 300_000, "sub/variants-sweep": 500_000, "test-sweep": 100_000}
@@ -75,13 +82,8 @@ def test_xla_cache_packs_this_leases_programs_before_carried_ones(tmp_path):
     """After an unpack, pack takes the programs compiled since first (oldest first), then the carried ones that were
     read (access time after modification time) before the unread, newest first: stale programs give way."""
     import os
-    import sys
     import tarfile
-    sys.path.insert(0, str(SCRIPT.parent))
-    try:
-        import xla_cache
-    finally:
-        sys.path.pop(0)
+    xla_cache = load_xla_cache()
     earlier = tmp_path / "earlier"
     earlier.mkdir()
     for name in ("hit", "stale-old", "stale-new"):
@@ -106,13 +108,8 @@ def test_xla_cache_packs_training_programs_before_the_others(tmp_path):
     """The trainer's programs (jit__rollout, jit__update, ...: what a lease's first iteration waits for) go before the
     others, also a carried one nobody read before this lease's sweeps; within each kind the order stays."""
     import os
-    import sys
     import tarfile
-    sys.path.insert(0, str(SCRIPT.parent))
-    try:
-        import xla_cache
-    finally:
-        sys.path.pop(0)
+    xla_cache = load_xla_cache()
     key = "0" * 64
     earlier = tmp_path / "earlier"
     earlier.mkdir()
@@ -140,12 +137,7 @@ def test_fit_shrinks_the_carried_cache_to_the_room_the_checkout_leaves(tmp_path)
     checkout grows with the results, and the cache gives way: its first programs (pack's order, the most useful) stay,
     with their times (unpack ranks the carried ones by them), the rest go; a cache that fits is left as it was."""
     import os
-    import sys
-    sys.path.insert(0, str(SCRIPT.parent))
-    try:
-        import xla_cache
-    finally:
-        sys.path.pop(0)
+    xla_cache = load_xla_cache()
     cache = tmp_path / "xla"
     cache.mkdir()
     for age, name in enumerate(["jit__update-a-cache", "jit__rollout-b-cache", "jit_sweep-c-cache"]):
@@ -170,5 +162,6 @@ def test_fit_shrinks_the_carried_cache_to_the_room_the_checkout_leaves(tmp_path)
     (repo / "results.bin").write_bytes(os.urandom(64 * 2 ** 20))   # no room at all: said, and the cache kept
     r = job("fit", cwd=repo)
     assert r.returncode == 1 and "no room for .gpu/xla-cache.tar.gz" in r.stderr and archive.stat().st_size > 2 ** 20
+    assert "what else travels: 64.0 MiB of 64" in r.stdout
     r = job("fit", cwd=tmp_path / "back")           # no .gpu/xla-cache.tar.gz: nothing to do
     assert r.returncode == 0 and "nothing to fit" in r.stdout

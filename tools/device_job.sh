@@ -49,26 +49,14 @@ if __name__ == "__main__":      # the search processes are spawned: they import 
 fi
 # Here, after copying a lease's xla-cache.tar.gz to .gpu/:   bash tools/device_job.sh fit
 #   A call takes at most 64 MiB: the checkout's files (tracked and untracked-not-ignored) and the carried .whl and .gpu.
-#   The device tool refused 63.6 MiB of files in 230 folders (session 39), so it seems to count 4 KiB a folder too.
 #   The checkout grows with every session's results; the carried compilation cache is what gives way: fit keeps its
-#   first (most useful, tools/xla_cache.py) programs within the room the rest leaves, less 1 MiB.
+#   first (most useful) programs within the room the rest leaves (tools/xla_cache.py, `room_mb`).
 if [ "$1" = fit ]; then
   cache=.gpu/xla-cache.tar.gz
   [ -f $cache ] || { echo "[device_job] no $cache: nothing to fit"; exit 0; }
-  room=$( { git ls-files -z; git ls-files -z --others --exclude-standard; find .whl .gpu -type f ! -path $cache -print0 2>/dev/null; } |
-    python3 -c '
-import os, sys
-files = [f for f in sys.stdin.read().split("\0") if f and os.path.isfile(f)]
-folders = {os.path.dirname(f) for f in files}
-for d in list(folders):
-    while d:
-        d = os.path.dirname(d)
-        folders.add(d)
-used = sum(os.path.getsize(f) for f in files) + 4096 * len(folders)
-print(f"{(64 * 2 ** 20 - used) / 2 ** 20 - 1:.2f}")')
-  echo "[device_job] the checkout, .whl and .gpu without the cache: $(python3 -c "print(f'{64 - 1 - $room:.1f}')") MiB of 64"
-  python3 "$(dirname "$0")/xla_cache.py" fit $cache "$room"
-  exit $?
+  { git ls-files -z; git ls-files -z --others --exclude-standard; find .whl .gpu -type f ! -path $cache -print0 2>/dev/null; } |
+    python3 "$(dirname "$0")/xla_cache.py" fit $cache
+  exit "${PIPESTATUS[1]}"      # fit's own (find fails where .whl is missing, which changes nothing)
 fi
 continuing=0
 [ "$1" = --continue ] && { continuing=1; shift; }

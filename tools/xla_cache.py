@@ -2,7 +2,8 @@
 
     python3 tools/xla_cache.py pack <cache dir> <archive.tar.gz> [max MiB]    # this lease's programs first
     python3 tools/xla_cache.py unpack <archive.tar.gz> <cache dir>
-    python3 tools/xla_cache.py fit <archive.tar.gz> <max MiB>       # here: keep its first programs within max MiB
+    python3 tools/xla_cache.py fit <archive.tar.gz> < <the other files that travel, NUL-separated>
+                                    # here: keep its first programs within the room the other files leave
 
 A fresh machine compiles the train step for ~100-150 s in a lease's first call; the programs compiled in an earlier
 lease serve it when they travel (`.gpu/xla-cache.tar.gz`, carried). JAX reads an entry only when its key matches: the
@@ -19,11 +20,15 @@ installed and after the command ended.
 """
 from __future__ import annotations
 
+import os
 import sys
 import tarfile
 from pathlib import Path
 
 MAX_MB = 15.0       # what one file from $OUT may be (16 MiB), less a margin
+#: what one call takes to the GPU machine (the checkout and what it carries). The device tool refused 63.6 MiB of files
+#: in 230 folders (session 39), so it seems to count 4 KiB a folder too; fit also leaves a margin of 1 MiB.
+CARRY_MB, FOLDER_BYTES, MARGIN_MB = 64.0, 4096, 1.0
 #: JAX names a cache entry `jit_<function>-<key>-cache`: the trainer's jitted functions (mjx_morph/ppo/trainer.py)
 TRAINING_PROGRAMS = ("jit__init_state", "jit__rollout", "jit__update", "jit__iteration")
 
@@ -103,6 +108,20 @@ def fit(archive: Path, max_mb: float) -> tuple[int, int]:
     return len(keep), len(members)
 
 
+def room_mb(files: list[str]) -> float:
+    """MiB left for the carried cache when `files` (the rest of what travels) go too: their sizes and 4 KiB for each
+    folder they sit in (ancestors too), less the margin."""
+    files = [f for f in files if os.path.isfile(f)]
+    folders = set()
+    for f in files:
+        d = os.path.dirname(f)
+        while d and d not in folders:
+            folders.add(d)
+            d = os.path.dirname(d)
+    used = sum(os.path.getsize(f) for f in files) + FOLDER_BYTES * (len(folders) + 1)      # + the root
+    return CARRY_MB - MARGIN_MB - used / 2 ** 20
+
+
 def main(argv: list[str]) -> int:
     if len(argv) >= 3 and argv[0] == "pack":
         cache, archive = Path(argv[1]), Path(argv[2])
@@ -118,17 +137,19 @@ def main(argv: list[str]) -> int:
         print(f"[xla_cache] {n} compiled programs from {argv[1]} in {argv[2]} (used only where the GPU model, JAX "
               "and the program are the same)")
         return 0
-    if len(argv) == 3 and argv[0] == "fit":
-        if float(argv[2]) <= 0:
-            print(f"[xla_cache] no room for {argv[1]}: what else travels takes the 64 MiB already; carry less",
-                  file=sys.stderr)
+    if len(argv) == 2 and argv[0] == "fit":
+        room = room_mb([f for f in sys.stdin.read().split("\0") if f])
+        print(f"[xla_cache] what else travels: {CARRY_MB - MARGIN_MB - room:.1f} MiB of {CARRY_MB:.0f}")
+        if room <= 0:
+            print(f"[xla_cache] no room for {argv[1]}: what else travels takes the {CARRY_MB:.0f} MiB already; "
+                  "carry less", file=sys.stderr)
             return 1
-        kept, count = fit(Path(argv[1]), float(argv[2]))
-        print(f"[xla_cache] {argv[1]}: {kept} of {count} compiled programs kept within {float(argv[2]):.1f} MiB "
+        kept, count = fit(Path(argv[1]), room)
+        print(f"[xla_cache] {argv[1]}: {kept} of {count} compiled programs kept within {room:.1f} MiB "
               f"({Path(argv[1]).stat().st_size / 2 ** 20:.1f} MiB packed)")
         return 0
     print("usage: python3 tools/xla_cache.py pack <cache dir> <archive.tar.gz> [max MiB] | "
-          "unpack <archive.tar.gz> <cache dir> | fit <archive.tar.gz> <max MiB>", file=sys.stderr)
+          "unpack <archive.tar.gz> <cache dir> | fit <archive.tar.gz> (the other files on stdin)", file=sys.stderr)
     return 2
 
 
