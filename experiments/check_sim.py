@@ -263,11 +263,11 @@ def check_task(a: CheckSimConfig, rs) -> None:
     print(f"# {rs.name} on {a.task}: {len(res)} robots, solver iterations {a.iterations}, line search "
           f"{a.ls_iterations}, {a.steps} control steps{hfield} "
           f"({time.time() - t0:.0f} s); mjx = padded MJX vs padded MuJoCo C (float64), max body-position error (m); "
-          "first step over 1e-5 m")
+          "first step over 1e-5 m; ulp = the same MJX run against itself started one float32 ulp away")
     for r in res:
         first = int(np.argmax(r.steps > 1e-5)) if (r.steps > 1e-5).any() else -1
         flag = "" if r.mjx <= a.tolerance else "   OVER TOLERANCE"
-        print(f"{r.name:40s} {r.mjx:9.2e}   {first:3d}{flag}")
+        print(f"{r.name:40s} {r.mjx:9.2e}   {first:3d}   ulp {r.mjx_ulp:9.2e}{flag}")
     s = fidelity.summary([r.mjx for r in res])
     over = [r for r in res if r.mjx > a.tolerance]
     print(f"# mjx      median {s['median']:.2e}  p99 {s['p99']:.2e}  max {s['max']:.2e} m; {len(over)} of {len(res)} "

@@ -279,6 +279,7 @@ class TaskResult:
     name: str
     mjx: float              # max body-position error (m), padded MJX against padded MuJoCo C on MetaMorph's ground
     steps: np.ndarray       # per control step
+    mjx_ulp: float          # max body-position difference, padded MJX against itself started one float32 ulp away
 
 
 def compare_task(robots: Sequence[Morphology], task: str, options: SolverOptions = SolverOptions(),
@@ -291,7 +292,9 @@ def compare_task(robots: Sequence[Morphology], task: str, options: SolverOptions
     hfield_contact.py), its contact budget and float32 against MuJoCo C's; on the incline it is the floor rule
     (contact.py) and float32 against MuJoCo C's box. `env_options`: further EnvConfig options (hfield_contacts,
     hfield_contacts_per_geom, contact_budget, flat_contact_budget). Body positions are compared through MuJoCo C's
-    kinematics of both states."""
+    kinematics of both states. `mjx_ulp`: the same MJX run started with every qpos / qvel entry one float32 step
+    (ulp) away, against the run itself: float32's own spread on that trajectory, the size of difference rounding
+    alone makes (a chaotic trajectory shows a gap to MuJoCo C as large as this spread)."""
     from .env import EnvConfig, UnimalEnv
     robots = tuple(robots)
     env = UnimalEnv(robots, EnvConfig(task=task, iterations=options.iterations, ls_iterations=options.ls_iterations,
@@ -310,7 +313,11 @@ def compare_task(robots: Sequence[Morphology], task: str, options: SolverOptions
             s = env.step(s, a)
             return s, s.physics.qpos
         return jax.lax.scan(body, state, acts)[1]
-    qpos_mjx = np.asarray(jax.jit(jax.vmap(run))(start, jnp.asarray(actions, jnp.float32)), np.float64)
+    run_all = jax.jit(jax.vmap(run))
+    qpos_mjx = np.asarray(run_all(start, jnp.asarray(actions, jnp.float32)), np.float64)
+    nudged = start._replace(physics=start.physics._replace(qpos=jnp.asarray(ulp_nudge(start.physics.qpos, rng)),
+                                                           qvel=jnp.asarray(ulp_nudge(start.physics.qvel, rng))))
+    qpos_ulp = np.asarray(run_all(nudged, jnp.asarray(actions, jnp.float32)), np.float64)
 
     hfield = env.terrain.uses_hfield
     patch = jax.jit(env.terrain.patch) if hfield else None
@@ -323,7 +330,12 @@ def compare_task(robots: Sequence[Morphology], task: str, options: SolverOptions
         d.qvel[:] = np.asarray(start.physics.qvel[r], np.float64)
         dk = mujoco.MjData(mm)
         bodies = tab.body_of_token[r][:m.num_nodes]
-        errs = np.zeros(steps)
+        errs, spread = np.zeros(steps), np.zeros(steps)
+
+        def xpos(qpos):
+            dk.qpos[:] = qpos
+            mujoco.mj_kinematics(mm, dk)
+            return dk.xpos[bodies].copy()
         for t in range(steps):
             if hfield:
                 data, pos = patch(ts, jnp.float32(d.qpos[0]), jnp.float32(d.qpos[1]))
@@ -334,9 +346,8 @@ def compare_task(robots: Sequence[Morphology], task: str, options: SolverOptions
             for _ in range(env.config.substeps):
                 mujoco.mj_step(mm, d)
             mujoco.mj_kinematics(mm, d)
-            x_c = d.xpos[bodies].copy()
-            dk.qpos[:] = qpos_mjx[r, t]
-            mujoco.mj_kinematics(mm, dk)
-            errs[t] = np.abs(dk.xpos[bodies] - x_c).max()
-        out.append(TaskResult(m.name, float(errs.max()), errs))
+            x_mjx = xpos(qpos_mjx[r, t])
+            errs[t] = np.abs(x_mjx - d.xpos[bodies]).max()
+            spread[t] = np.abs(xpos(qpos_ulp[r, t]) - x_mjx).max()
+        out.append(TaskResult(m.name, float(errs.max()), errs, float(spread.max())))
     return out
