@@ -107,8 +107,9 @@ def test_incline_matches_mujoco_c_on_metamorphs_slab():
     env's frame (the torso starts at the origin; in MetaMorph's frame, 72 m away, float32 took 1 of 50 train robots
     over 1e-3 m and the median to 4.7e-5 m: docs/benchmarks.md, session 13). The bound is 2e-4 m: the second robot
     leaves MuJoCo C after a contact change at control step ~15 and drifts linearly to 9.1e-5 m (XLA's default CPU
-    flags) or 1.09e-4 m (the suite's, fusion emitters off) by step 25 on an AVX-512 CPU: how XLA compiles the same
-    program moves it by 20% (docs/benchmarks.md, "CPU notes", session 40)."""
+    flags) or 1.09e-4 m (the suite's, fusion emitters off) by step 25 on an AVX-512 CPU, while MuJoCo C restarted
+    from MJX's state at every control step stays within 6.3e-7 m of it: float32's per-step error, amplified
+    (docs/benchmarks.md, "CPU notes", session 40)."""
     res = fidelity.compare_task(_robots(2), "incline", SolverOptions(), steps=25)
     assert len(res) == 2
     for r in res:
