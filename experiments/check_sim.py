@@ -20,7 +20,8 @@ vs the robot alone in MJX; with `x64=true` in float64, where the padding is all 
 percentile / max of each (see mjx_morph/sim/fidelity.py), and exits 1 when any robot is over the tolerance (1e-3 m
 by default). With `task=` (incline, csr, obstacle): the padded MJX against the padded MuJoCo C on MetaMorph's
 ground, beside the same MJX run from a start one float32 ulp away (`ulp`: a robot over the tolerance with an ulp
-spread as large follows a chaotic trajectory).
+spread as large follows a chaotic trajectory) and MuJoCo C restarted from MJX's state before each control step
+(`step`: the physics compared one step at a time, without the trajectory's amplification).
 """
 from __future__ import annotations
 
@@ -265,16 +266,19 @@ def check_task(a: CheckSimConfig, rs) -> None:
     print(f"# {rs.name} on {a.task}: {len(res)} robots, solver iterations {a.iterations}, line search "
           f"{a.ls_iterations}, {a.steps} control steps{hfield} "
           f"({time.time() - t0:.0f} s); mjx = padded MJX vs padded MuJoCo C (float64), max body-position error (m); "
-          "first step over 1e-5 m; ulp = the same MJX run against itself started one float32 ulp away")
+          "first step over 1e-5 m; ulp = the same MJX run against itself started one float32 ulp away; step = "
+          "MuJoCo C restarted from MJX's state before each control step, against MJX's next state")
     for r in res:
         first = int(np.argmax(r.steps > 1e-5)) if (r.steps > 1e-5).any() else -1
         flag = "" if r.mjx <= a.tolerance else (
             "   OVER TOLERANCE (as far from one ulp)" if r.mjx_ulp >= 0.1 * r.mjx else "   OVER TOLERANCE")
-        print(f"{r.name:40s} {r.mjx:9.2e}   {first:3d}   ulp {r.mjx_ulp:9.2e}{flag}")
+        print(f"{r.name:40s} {r.mjx:9.2e}   {first:3d}   ulp {r.mjx_ulp:9.2e}   step {r.mjx_step:9.2e}{flag}")
     s = fidelity.summary([r.mjx for r in res])
     over = [r for r in res if r.mjx > a.tolerance]
     print(f"# mjx      median {s['median']:.2e}  p99 {s['p99']:.2e}  max {s['max']:.2e} m; {len(over)} of {len(res)} "
           f"over {a.tolerance:g} m")
+    s = fidelity.summary([r.mjx_step for r in res])
+    print(f"# step     median {s['median']:.2e}  p99 {s['p99']:.2e}  max {s['max']:.2e} m")
     if over:
         raise SystemExit(1)
 

@@ -280,6 +280,7 @@ class TaskResult:
     mjx: float              # max body-position error (m), padded MJX against padded MuJoCo C on MetaMorph's ground
     steps: np.ndarray       # per control step
     mjx_ulp: float          # max body-position difference, padded MJX against itself started one float32 ulp away
+    mjx_step: float         # max body-position error of one control step, MuJoCo C restarted from MJX's state
 
 
 def compare_task(robots: Sequence[Morphology], task: str, options: SolverOptions = SolverOptions(),
@@ -294,7 +295,9 @@ def compare_task(robots: Sequence[Morphology], task: str, options: SolverOptions
     hfield_contacts_per_geom, contact_budget, flat_contact_budget). Body positions are compared through MuJoCo C's
     kinematics of both states. `mjx_ulp`: the same MJX run started with every qpos / qvel entry one float32 step
     (ulp) away, against the run itself: float32's own spread on that trajectory, the size of difference rounding
-    alone makes (a chaotic trajectory shows a gap to MuJoCo C as large as this spread)."""
+    alone makes (a chaotic trajectory shows a gap to MuJoCo C as large as this spread). `mjx_step`: MuJoCo C
+    restarted from MJX's state (qpos, qvel, the solver's warm start) before each control step and run that one step, against MJX's next
+    state: the physics compared without the trajectory's amplification of float32's per-step error."""
     from .env import EnvConfig, UnimalEnv
     robots = tuple(robots)
     env = UnimalEnv(robots, EnvConfig(task=task, iterations=options.iterations, ls_iterations=options.ls_iterations,
@@ -311,13 +314,13 @@ def compare_task(robots: Sequence[Morphology], task: str, options: SolverOptions
     def run(state, acts):
         def body(s, a):
             s = env.step(s, a)
-            return s, s.physics.qpos
+            return s, s.physics
         return jax.lax.scan(body, state, acts)[1]
     run_all = jax.jit(jax.vmap(run))
-    qpos_mjx = np.asarray(run_all(start, jnp.asarray(actions, jnp.float32)), np.float64)
+    qpos_mjx, qvel_mjx, warm_mjx = (np.asarray(x, np.float64) for x in run_all(start, jnp.asarray(actions, jnp.float32)))
     nudged = start._replace(physics=start.physics._replace(qpos=jnp.asarray(ulp_nudge(start.physics.qpos, rng)),
                                                            qvel=jnp.asarray(ulp_nudge(start.physics.qvel, rng))))
-    qpos_ulp = np.asarray(run_all(nudged, jnp.asarray(actions, jnp.float32)), np.float64)
+    qpos_ulp = np.asarray(run_all(nudged, jnp.asarray(actions, jnp.float32)).qpos, np.float64)
 
     hfield = env.terrain.uses_hfield
     patch = jax.jit(env.terrain.patch) if hfield else None
@@ -325,29 +328,35 @@ def compare_task(robots: Sequence[Morphology], task: str, options: SolverOptions
     out = []
     for r, (m, mm) in enumerate(zip(robots, padded_c_models(sm, env.terrain.reference_world()))):
         ts = jax.tree_util.tree_map(lambda x: x[r], start.episode.terrain)
-        d = mujoco.MjData(mm)
-        d.qpos[:] = np.asarray(start.physics.qpos[r], np.float64)
-        d.qvel[:] = np.asarray(start.physics.qvel[r], np.float64)
-        dk = mujoco.MjData(mm)
+        q0, v0, w0 = (np.asarray(x[r], np.float64) for x in start.physics)
+        d, ds, dk = mujoco.MjData(mm), mujoco.MjData(mm), mujoco.MjData(mm)   # the run, the restarts, kinematics
+        d.qpos[:], d.qvel[:] = q0, v0
         bodies = tab.body_of_token[r][:m.num_nodes]
-        errs, spread = np.zeros(steps), np.zeros(steps)
+        errs, spread, step_errs = np.zeros(steps), np.zeros(steps), np.zeros(steps)
 
         def xpos(qpos):
             dk.qpos[:] = qpos
             mujoco.mj_kinematics(mm, dk)
             return dk.xpos[bodies].copy()
-        for t in range(steps):
-            if hfield:
-                data, pos = patch(ts, jnp.float32(d.qpos[0]), jnp.float32(d.qpos[1]))
+
+        def control_step(dd, ctrl):
+            if hfield:                                   # the patch centred under this state's own torso
+                data, pos = patch(ts, jnp.float32(dd.qpos[0]), jnp.float32(dd.qpos[1]))
                 mm.hfield_data[:] = np.asarray(data, np.float64)
                 mm.geom_pos[env._hgeom] = np.asarray(pos, np.float64)
-            a = np.clip(actions[r, t], -1, 1)
-            d.ctrl[:] = np.concatenate([a, [0.0]])[tab.ctrl_src[r]]
+            dd.ctrl[:] = ctrl
             for _ in range(env.config.substeps):
-                mujoco.mj_step(mm, d)
-            mujoco.mj_kinematics(mm, d)
+                mujoco.mj_step(mm, dd)
+            return xpos(dd.qpos)
+        for t in range(steps):
+            ctrl = np.concatenate([np.clip(actions[r, t], -1, 1), [0.0]])[tab.ctrl_src[r]]
+            ds.qpos[:], ds.qvel[:], ds.qacc_warmstart[:] = (q0, v0, w0) if t == 0 else \
+                (qpos_mjx[r, t - 1], qvel_mjx[r, t - 1], warm_mjx[r, t - 1])
+            x_restart = control_step(ds, ctrl)
+            x_c = control_step(d, ctrl)
             x_mjx = xpos(qpos_mjx[r, t])
-            errs[t] = np.abs(x_mjx - d.xpos[bodies]).max()
+            errs[t] = np.abs(x_mjx - x_c).max()
+            step_errs[t] = np.abs(x_mjx - x_restart).max()
             spread[t] = np.abs(xpos(qpos_ulp[r, t]) - x_mjx).max()
-        out.append(TaskResult(m.name, float(errs.max()), errs, float(spread.max())))
+        out.append(TaskResult(m.name, float(errs.max()), errs, float(spread.max()), float(step_errs.max())))
     return out
