@@ -296,8 +296,9 @@ def compare_task(robots: Sequence[Morphology], task: str, options: SolverOptions
     kinematics of both states. `mjx_ulp`: the same MJX run started with every qpos / qvel entry one float32 step
     (ulp) away, against the run itself: float32's own spread on that trajectory, the size of difference rounding
     alone makes (a chaotic trajectory shows a gap to MuJoCo C as large as this spread). `mjx_step`: MuJoCo C
-    restarted from MJX's state (qpos, qvel, the solver's warm start) before each control step and run that one step, against MJX's next
-    state: the physics compared without the trajectory's amplification of float32's per-step error."""
+    restarted from MJX's state (qpos, qvel, the solver's warm start) before each control step and run that one
+    step, against MJX's next state: the physics compared without the trajectory's amplification of float32's
+    per-step error."""
     from .env import EnvConfig, UnimalEnv
     robots = tuple(robots)
     env = UnimalEnv(robots, EnvConfig(task=task, iterations=options.iterations, ls_iterations=options.ls_iterations,
@@ -317,7 +318,8 @@ def compare_task(robots: Sequence[Morphology], task: str, options: SolverOptions
             return s, s.physics
         return jax.lax.scan(body, state, acts)[1]
     run_all = jax.jit(jax.vmap(run))
-    qpos_mjx, qvel_mjx, warm_mjx = (np.asarray(x, np.float64) for x in run_all(start, jnp.asarray(actions, jnp.float32)))
+    physics = jax.tree_util.tree_map(lambda x: np.asarray(x, np.float64),
+                                     run_all(start, jnp.asarray(actions, jnp.float32)))    # (R, steps, ...) each
     nudged = start._replace(physics=start.physics._replace(qpos=jnp.asarray(ulp_nudge(start.physics.qpos, rng)),
                                                            qvel=jnp.asarray(ulp_nudge(start.physics.qvel, rng))))
     qpos_ulp = np.asarray(run_all(nudged, jnp.asarray(actions, jnp.float32)).qpos, np.float64)
@@ -328,9 +330,9 @@ def compare_task(robots: Sequence[Morphology], task: str, options: SolverOptions
     out = []
     for r, (m, mm) in enumerate(zip(robots, padded_c_models(sm, env.terrain.reference_world()))):
         ts = jax.tree_util.tree_map(lambda x: x[r], start.episode.terrain)
-        q0, v0, w0 = (np.asarray(x[r], np.float64) for x in start.physics)
+        first = jax.tree_util.tree_map(lambda x: np.asarray(x[r], np.float64), start.physics)
         d, ds, dk = mujoco.MjData(mm), mujoco.MjData(mm), mujoco.MjData(mm)   # the run, the restarts, kinematics
-        d.qpos[:], d.qvel[:] = q0, v0
+        d.qpos[:], d.qvel[:] = first.qpos, first.qvel
         bodies = tab.body_of_token[r][:m.num_nodes]
         errs, spread, step_errs = np.zeros(steps), np.zeros(steps), np.zeros(steps)
 
@@ -350,11 +352,11 @@ def compare_task(robots: Sequence[Morphology], task: str, options: SolverOptions
             return xpos(dd.qpos)
         for t in range(steps):
             ctrl = np.concatenate([np.clip(actions[r, t], -1, 1), [0.0]])[tab.ctrl_src[r]]
-            ds.qpos[:], ds.qvel[:], ds.qacc_warmstart[:] = (q0, v0, w0) if t == 0 else \
-                (qpos_mjx[r, t - 1], qvel_mjx[r, t - 1], warm_mjx[r, t - 1])
+            before = first if t == 0 else jax.tree_util.tree_map(lambda x: x[r, t - 1], physics)
+            ds.qpos[:], ds.qvel[:], ds.qacc_warmstart[:] = before.qpos, before.qvel, before.qacc_warmstart
             x_restart = control_step(ds, ctrl)
             x_c = control_step(d, ctrl)
-            x_mjx = xpos(qpos_mjx[r, t])
+            x_mjx = xpos(physics.qpos[r, t])
             errs[t] = np.abs(x_mjx - x_c).max()
             step_errs[t] = np.abs(x_mjx - x_restart).max()
             spread[t] = np.abs(xpos(qpos_ulp[r, t]) - x_mjx).max()
