@@ -12,6 +12,7 @@
     python -m experiments.check_sim unimal100/train task=csr        # height-field tasks: MJX vs MuJoCo C, same patches
     python -m experiments.check_sim unimal100/train task=incline    # the incline: MJX vs MuJoCo C on MetaMorph's slab
     python -m experiments.check_sim unimal100/train task=csr num_robots=5 hfield_contacts=mjx   # MJX's own collider
+    python -m experiments.check_sim unimal100/train task=csr 'trace=[mvt-5506-12-4]'   # one robot step by step
 
 Prints per robot the worst body-position error (m) over `steps` control steps of the padded MJX robot against the
 robot alone in MuJoCo C on MetaMorph's floor, split into the padding's share (padded vs alone, both MuJoCo C) and
@@ -21,7 +22,9 @@ percentile / max of each (see mjx_morph/sim/fidelity.py), and exits 1 when any r
 by default). With `task=` (incline, csr, obstacle): the padded MJX against the padded MuJoCo C on MetaMorph's
 ground, beside the same MJX run from a start one float32 ulp away (`ulp`: a robot over the tolerance with an ulp
 spread as large follows a chaotic trajectory) and MuJoCo C restarted from MJX's state before each control step
-(`step`: the physics compared one step at a time, without the trajectory's amplification).
+(`step`: the physics compared one step at a time, without the trajectory's amplification). `trace=[NAME, ...]`
+(names or their beginnings) prints those robots step by step: the three errors and MuJoCo C's contacts per substep,
+in its own run and restarted from MJX's state, with the contacts themselves at the step of the largest step error.
 """
 from __future__ import annotations
 
@@ -79,6 +82,8 @@ class CheckSimConfig:
                                              # is the padding's own error in MJX without float32's rounding
     unpadded_range: str = ""                 # "lo:hi": with unpadded_mjx, only robots lo..hi-1 alone in MJX (the
                                              # rest print nan), each as in a run over all robots: slices add up
+    trace: List[str] = dataclasses.field(default_factory=list)   # task=...: robots (names or their beginnings)
+                                             # printed step by step, with MuJoCo C's contacts
     csv: str = ""                            # also write one row per robot (every printed column) to this CSV file
     merge: List[str] = dataclasses.field(default_factory=list)   # instead of a check: the CSV files of one check's
                                              # slices (unpadded_range) read as one, summarised (and written to csv=)
@@ -252,7 +257,8 @@ def check_task(a: CheckSimConfig, rs) -> None:
     on_hfield = get_task(a.task).uses_hfield
     ground = "the same height-field patches" if on_hfield else "MetaMorph's slab"
     print(f"# comparing {len(rs)} robots on {a.task} with MuJoCo C on {ground}...", flush=True)
-    res = fidelity.compare_task(rs.robots, a.task, opts, steps=a.steps, seed=a.seed,
+    traced = _traced(a.trace, rs)
+    res = fidelity.compare_task(rs.robots, a.task, opts, steps=a.steps, seed=a.seed, trace=traced,
                                 hfield_contacts=a.hfield_contacts,
                                 hfield_contacts_per_geom=a.hfield_contacts_per_geom,
                                 hfield_candidates=a.hfield_candidates,
@@ -279,8 +285,46 @@ def check_task(a: CheckSimConfig, rs) -> None:
           f"over {a.tolerance:g} m")
     s = fidelity.summary([r.mjx_step for r in res])
     print(f"# step     median {s['median']:.2e}  p99 {s['p99']:.2e}  max {s['max']:.2e} m")
+    for r in res:
+        if r.contacts is not None:
+            print_trace(r)
     if over:
         raise SystemExit(1)
+
+
+def _traced(names: List[str], rs) -> List[str]:
+    """The set's robot names that `trace` names (a name or its beginning, one robot each)."""
+    out = []
+    for n in names:
+        hits = [m for m in rs.names if m.startswith(n)]
+        if len(hits) != 1:
+            found = f"{len(hits)}: {', '.join(hits[:5])}" if hits else "none"
+            raise ValueError(f"trace={n!r}: expected the name (or its beginning) of one robot of {rs.name}; found "
+                             f"{found}")
+        out.append(hits[0])
+    return out
+
+
+def print_trace(r) -> None:
+    """One traced robot step by step (`trace=`): mjx, ulp and step errors and MuJoCo C's contacts per substep (its
+    own run / restarted from MJX's state), then at the step of the largest step error each substep's contacts
+    (distance, geoms), those one side has and the other not marked *."""
+    print(f"# trace {r.name}: control step, mjx, ulp, step (m); MuJoCo C's contacts after each substep, run / "
+          "restart")
+    for t in range(len(r.steps)):
+        run, restart = (",".join(str(int(n)) for n in r.ncon[t, i]) for i in (0, 1))
+        mark = "   <- largest step error" if t == int(np.argmax(r.step_steps)) else ""
+        print(f"  {t:3d}  {r.steps[t]:9.2e}  {r.ulp_steps[t]:9.2e}  {r.step_steps[t]:9.2e}   {run:>12s} / "
+              f"{restart:<12s}{mark}")
+    t = int(np.argmax(r.step_steps))
+    print(f"# trace {r.name}: MuJoCo C's contacts at control step {t} (distance m, geom x geom; * = a pair only one "
+          "side has, or has more of)")
+    for k, (run, restart) in enumerate(zip(*r.contacts[t])):
+        for label, mine, other in (("run    ", run, restart), ("restart", restart, run)):
+            mine_pairs, other_pairs = [c[1:] for c in mine], [c[1:] for c in other]
+            cells = [f"{dist:.2e} {g1} x {g2}{'*' if mine_pairs.count((g1, g2)) > other_pairs.count((g1, g2)) else ''}"
+                     for dist, g1, g2 in mine]
+            print(f"  substep {k} {label} ({len(mine)}): {'; '.join(cells)}")
 
 
 def main(argv=None) -> int:

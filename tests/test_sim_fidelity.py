@@ -102,7 +102,7 @@ def test_float64_mjx_isolates_the_padding():
     assert jnp.zeros(()).dtype == jnp.float32          # the context ends with the call
 
 
-def test_incline_matches_mujoco_c_on_metamorphs_slab():
+def test_incline_matches_mujoco_c_on_metamorphs_slab(capsys):
     """The incline env's padded MJX against the same padded model in MuJoCo C on MetaMorph's slab box, in the
     env's frame (the torso starts at the origin; in MetaMorph's frame, 72 m away, float32 took 1 of 50 train robots
     over 1e-3 m and the median to 4.7e-5 m: docs/benchmarks.md, session 13). The bound is 2e-4 m: the second robot
@@ -111,12 +111,31 @@ def test_incline_matches_mujoco_c_on_metamorphs_slab():
     from MJX's state before every control step lands within 1.3e-7 m of MJX's next state (`mjx_step`): float32's
     per-step error, amplified (docs/benchmarks.md, "CPU notes", session 40). So the step-by-step bound is the tight
     one."""
-    res = fidelity.compare_task(_robots(2), "incline", SolverOptions(), steps=25)
+    robots = _robots(2)
+    res = fidelity.compare_task(robots, "incline", SolverOptions(), steps=25, trace=[robots[1].name])
     assert len(res) == 2
     for r in res:
         assert 0.0 < r.mjx < 2e-4, (r.name, r.mjx)
         assert 0.0 < r.mjx_step < 1e-5, (r.name, r.mjx_step)
         assert 0.0 < r.mjx_ulp < 1e-4, (r.name, r.mjx_ulp)     # the nudged start ran, and stayed near
+        assert r.step_steps.max() == r.mjx_step and r.ulp_steps.max() == r.mjx_ulp
+        substeps = r.ncon.shape[2]
+        assert r.ncon.shape == (25, 2, substeps) and r.ncon.min() >= 0 and r.ncon.max() > 0   # a robot on its slab
+        # the restart and the run start control step 0 from one state: the same contacts in its first substep
+        assert r.ncon[0, 0, 0] == r.ncon[0, 1, 0], r.ncon[0]
+    assert res[0].contacts is None                               # kept for the traced robot only
+    trace = res[1].contacts
+    assert len(trace) == 25 and all(len(side) == res[1].ncon.shape[2] for step in trace for side in step)
+    assert [[len(c) for c in side] for side in trace[7]] == res[1].ncon[7].tolist()
+    assert any(g1 == "floor" or g2 == "floor" for step in trace for side in step for sub in side
+               for _, g1, g2 in sub), "no floor contact in the trace"
+    from experiments import check_sim                           # check_sim trace=[...] prints it step by step
+    check_sim.print_trace(res[1])
+    lines = capsys.readouterr().out.splitlines()
+    assert len(lines) == 1 + 25 + 1 + 2 * res[1].ncon.shape[2]
+    t = int(np.argmax(res[1].step_steps))
+    assert sum("<- largest step error" in ln for ln in lines) == 1 and "<- largest step error" in lines[1 + t]
+    assert f"contacts at control step {t} " in lines[26]
 
 
 @pytest.mark.parametrize("incline", [0.0, 10.0])
@@ -291,6 +310,8 @@ def test_check_sim_slices_the_alone_runs_and_writes_csv(tmp_path, capsys):
         assert msg in capsys.readouterr().err
     assert check_sim.main(["gen/train", "num_robots=2", "unpadded_range=0:1"]) == 2
     assert "needs unpadded_mjx=true" in capsys.readouterr().err
+    assert check_sim.main(["gen/train", "num_robots=2", "task=incline", "trace=[no-such-robot]"]) == 2
+    assert "trace='no-such-robot'" in capsys.readouterr().err
     assert check_sim.main([f"merge=[{out},{out}]"]) == 0          # the same slice twice: its own values agree
     assert "1 of 2 robots run alone in MJX" in capsys.readouterr().out
 

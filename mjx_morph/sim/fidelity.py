@@ -281,10 +281,16 @@ class TaskResult:
     steps: np.ndarray       # per control step
     mjx_ulp: float          # max body-position difference, padded MJX against itself started one float32 ulp away
     mjx_step: float         # max body-position error of one control step, MuJoCo C restarted from MJX's state
+    step_steps: np.ndarray  # mjx_step per control step
+    ulp_steps: np.ndarray   # mjx_ulp per control step
+    ncon: np.ndarray        # (steps, 2, substeps) MuJoCo C's contacts after each substep: [:, 0] its own run, [:, 1]
+                            # the restart from MJX's state
+    contacts: list | None = None   # traced robots only: [step][run 0 / restart 1][substep] = [(distance, geom,
+                                   # geom)], MuJoCo C's contacts by geom name, deepest first
 
 
 def compare_task(robots: Sequence[Morphology], task: str, options: SolverOptions = SolverOptions(),
-                 steps: int = 25, seed: int = 0, **env_options) -> list[TaskResult]:
+                 steps: int = 25, seed: int = 0, trace: Sequence[str] = (), **env_options) -> list[TaskResult]:
     """The tasks beyond ft (incline, csr, obstacle): every robot in the env's padded MJX model against the same padded
     model in MuJoCo C (float64) on MetaMorph's ground (`Terrain.reference_world`: the incline's slab box, the height
     fields' patch), from the env's own reset state (a generated terrain) under N(0, 0.9) actions. On csr and
@@ -298,7 +304,10 @@ def compare_task(robots: Sequence[Morphology], task: str, options: SolverOptions
     alone makes (a chaotic trajectory shows a gap to MuJoCo C as large as this spread). `mjx_step`: MuJoCo C
     restarted from MJX's state (qpos, qvel, the solver's warm start) before each control step and run that one
     step, against MJX's next state: the physics compared without the trajectory's amplification of float32's
-    per-step error."""
+    per-step error. `trace`: names of robots whose MuJoCo C contacts (run and restart, every substep) are kept in
+    `TaskResult.contacts`, to see what a large step error was: a contact that one state makes and the other, a
+    hair away, does not (a contact within ~1e-6 m of touching, which float32 rounding decides, changes a step by
+    as much as the body's speed times a substep)."""
     from .env import EnvConfig, UnimalEnv
     robots = tuple(robots)
     env = UnimalEnv(robots, EnvConfig(task=task, iterations=options.iterations, ls_iterations=options.ls_iterations,
@@ -335,30 +344,40 @@ def compare_task(robots: Sequence[Morphology], task: str, options: SolverOptions
         d.qpos[:], d.qvel[:] = first.qpos, first.qvel
         bodies = tab.body_of_token[r][:m.num_nodes]
         errs, spread, step_errs = np.zeros(steps), np.zeros(steps), np.zeros(steps)
+        ncon = np.zeros((steps, 2, env.config.substeps), np.int32)
+        traced = [] if m.name in trace else None
 
         def xpos(qpos):
             dk.qpos[:] = qpos
             mujoco.mj_kinematics(mm, dk)
             return dk.xpos[bodies].copy()
 
-        def control_step(dd, ctrl):
+        def control_step(dd, ctrl, counts, log):
             if hfield:                                   # the patch centred under this state's own torso
                 data, pos = patch(ts, jnp.float32(dd.qpos[0]), jnp.float32(dd.qpos[1]))
                 mm.hfield_data[:] = np.asarray(data, np.float64)
                 mm.geom_pos[env._hgeom] = np.asarray(pos, np.float64)
             dd.ctrl[:] = ctrl
-            for _ in range(env.config.substeps):
+            for k in range(env.config.substeps):
                 mujoco.mj_step(mm, dd)
+                counts[k] = dd.ncon
+                if log is not None:
+                    log.append(sorted((float(dist), mm.geom(g[0]).name, mm.geom(g[1]).name)
+                                      for dist, g in zip(dd.contact.dist[:dd.ncon], dd.contact.geom[:dd.ncon])))
             return xpos(dd.qpos)
         for t in range(steps):
             ctrl = np.concatenate([np.clip(actions[r, t], -1, 1), [0.0]])[tab.ctrl_src[r]]
             before = first if t == 0 else jax.tree_util.tree_map(lambda x: x[r, t - 1], physics)
             ds.qpos[:], ds.qvel[:], ds.qacc_warmstart[:] = before.qpos, before.qvel, before.qacc_warmstart
-            x_restart = control_step(ds, ctrl)
-            x_c = control_step(d, ctrl)
+            logs = ([], []) if traced is not None else (None, None)
+            x_restart = control_step(ds, ctrl, ncon[t, 1], logs[1])
+            x_c = control_step(d, ctrl, ncon[t, 0], logs[0])
+            if traced is not None:
+                traced.append(logs)
             x_mjx = xpos(physics.qpos[r, t])
             errs[t] = np.abs(x_mjx - x_c).max()
             step_errs[t] = np.abs(x_mjx - x_restart).max()
             spread[t] = np.abs(xpos(qpos_ulp[r, t]) - x_mjx).max()
-        out.append(TaskResult(m.name, float(errs.max()), errs, float(spread.max()), float(step_errs.max())))
+        out.append(TaskResult(m.name, float(errs.max()), errs, float(spread.max()), float(step_errs.max()),
+                              step_errs, spread, ncon, traced))
     return out
