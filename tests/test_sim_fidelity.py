@@ -302,7 +302,7 @@ def test_check_sim_slices_the_alone_runs_and_writes_csv(tmp_path, capsys):
     text = capsys.readouterr().out
     assert f"contact budget {EnvConfig().flat_contact_budget}" in text          # the env's default budget
     assert int(re.search(r"contacts touching at once.* max (\d+) ", text)[1]) >= 1
-    rows = list(csv.DictReader(out.open()))
+    rows = list(csv.DictReader(out.read_text().splitlines()))
     assert len(rows) == 2 and rows[0]["padding_mjx"] == "nan" and float(rows[1]["padding_mjx"]) < 1e-3
     assert all(float(r["error"]) < fidelity.TOLERANCE for r in rows)
     for bad, msg in (("2:1", "expected 0 <= lo < hi <= 2"), ("1-2", "expected lo:hi")):
@@ -339,7 +339,7 @@ def test_check_sim_merges_the_slices_of_one_check(tmp_path, capsys):
     assert stop.value.code == 1
     printed = capsys.readouterr().out
     assert "2 of 3 robots run alone in MJX" in printed and "# mjx_alone: 1 of 2 over 0.001 m: r1 (2.00e-03)" in printed
-    rows = {r["robot"]: r for r in csv.DictReader(out.open())}
+    rows = {r["robot"]: r for r in csv.DictReader(out.read_text().splitlines())}
     assert rows["r0"]["mjx_alone"] == "1e-6" and rows["r1"]["mjx_alone"] == "2e-3" and rows["r2"]["mjx_alone"] == "nan"
     other = write("other.csv", {"r1"}, {**padded, "r2": ["5e-6"] * 4})
     fewer = write("fewer.csv", {"r1"}, {k: padded[k] for k in ("r0", "r1")})
