@@ -13,6 +13,7 @@
     python -m experiments.check_sim unimal100/train task=incline    # the incline: MJX vs MuJoCo C on MetaMorph's slab
     python -m experiments.check_sim unimal100/train task=csr num_robots=5 hfield_contacts=mjx   # MJX's own collider
     python -m experiments.check_sim unimal100/train task=csr 'trace=[mvt-5506-12-4]'   # one robot step by step
+    python -m experiments.check_sim unimal100/train task=csr x64=true     # the env in float64: float32's share
 
 Prints per robot the worst body-position error (m) over `steps` control steps of the padded MJX robot against the
 robot alone in MuJoCo C on MetaMorph's floor, split into the padding's share (padded vs alone, both MuJoCo C) and
@@ -79,7 +80,8 @@ class CheckSimConfig:
     unpadded_mjx: bool = False               # also run each robot alone in MJX: the padding's share in float32
                                              # (one compilation per robot, ~10 s each on a CPU)
     x64: bool = False                        # run MJX in float64 (jax.enable_x64): with unpadded_mjx, padding_mjx
-                                             # is the padding's own error in MJX without float32's rounding
+                                             # is the padding's own error in MJX without float32's rounding; with
+                                             # task=..., the env in float64 against MuJoCo C (float32's share)
     unpadded_range: str = ""                 # "lo:hi": with unpadded_mjx, only robots lo..hi-1 alone in MJX (the
                                              # rest print nan), each as in a run over all robots: slices add up
     trace: List[str] = dataclasses.field(default_factory=list)   # task=...: robots (names or their beginnings)
@@ -258,7 +260,8 @@ def check_task(a: CheckSimConfig, rs) -> None:
     ground = "the same height-field patches" if on_hfield else "MetaMorph's slab"
     print(f"# comparing {len(rs)} robots on {a.task} with MuJoCo C on {ground}...", flush=True)
     traced = _traced(a.trace, rs)
-    res = fidelity.compare_task(rs.robots, a.task, opts, steps=a.steps, seed=a.seed, trace=traced,
+    fl = "float64" if a.x64 else "float32"
+    res = fidelity.compare_task(rs.robots, a.task, opts, steps=a.steps, seed=a.seed, trace=traced, x64=a.x64,
                                 hfield_contacts=a.hfield_contacts,
                                 hfield_contacts_per_geom=a.hfield_contacts_per_geom,
                                 hfield_candidates=a.hfield_candidates,
@@ -271,8 +274,8 @@ def check_task(a: CheckSimConfig, rs) -> None:
               else ", MetaMorph's slab in MuJoCo C") + f", contact budget {budget or 'none'}"
     print(f"# {rs.name} on {a.task}: {len(res)} robots, solver iterations {a.iterations}, line search "
           f"{a.ls_iterations}, {a.steps} control steps{hfield} "
-          f"({time.time() - t0:.0f} s); mjx = padded MJX vs padded MuJoCo C (float64), max body-position error (m); "
-          "first step over 1e-5 m; ulp = the same MJX run against itself started one float32 ulp away; step = "
+          f"({time.time() - t0:.0f} s); mjx = padded MJX in {fl} vs padded MuJoCo C (float64), max body-position "
+          f"error (m); first step over 1e-5 m; ulp = the same MJX run against itself started one {fl} ulp away; step = "
           "MuJoCo C restarted from MJX's state before each control step, against MJX's next state")
     for r in res:
         first = int(np.argmax(r.steps > 1e-5)) if (r.steps > 1e-5).any() else -1

@@ -108,9 +108,9 @@ def test_incline_matches_mujoco_c_on_metamorphs_slab(capsys):
     over 1e-3 m and the median to 4.7e-5 m: docs/benchmarks.md, session 13). The bound is 2e-4 m: the second robot
     leaves MuJoCo C after a contact change at control step ~15 and drifts linearly to 9.1e-5 m (XLA's default CPU
     flags) or 1.09e-4 m (the suite's, fusion emitters off) by step 25 on an AVX-512 CPU, while MuJoCo C restarted
-    from MJX's state before every control step lands within 1.3e-7 m of MJX's next state (`mjx_step`): float32's
-    per-step error, amplified (docs/benchmarks.md, "CPU notes", session 40). So the step-by-step bound is the tight
-    one."""
+    from MJX's state before every control step lands within 1.3e-7 m of MJX's next state (`mjx_step`): MJX's
+    per-step difference from MuJoCo C, amplified (in float64 too: the next test). So the step-by-step bound is the
+    tight one."""
     robots = _robots(2)
     res = fidelity.compare_task(robots, "incline", SolverOptions(), steps=25, trace=[robots[1].name])
     assert len(res) == 2
@@ -136,6 +136,33 @@ def test_incline_matches_mujoco_c_on_metamorphs_slab(capsys):
     t = int(np.argmax(res[1].step_steps))
     assert sum("<- largest step error" in ln for ln in lines) == 1 and "<- largest step error" in lines[1 + t]
     assert f"contacts at control step {t} " in lines[26]
+
+
+def test_incline_in_float64_keeps_mjx_step_by_step_and_float64_tight():
+    """`compare_task(x64=True)`: the env traced in float64 (its observations stay float32) from the start a float32
+    run has. Without float32's rounding a one-ulp nudge stays at ~1e-14 m, and MJX's control steps stay within
+    ~1e-7 m of MuJoCo C's (5.3e-8 m for the second robot, 1.3e-7 in float32), yet its trajectory still ends 7.6e-5 m
+    away (1.09e-4 m in float32): what the trajectory amplifies is mostly MJX's own step-by-step difference from
+    MuJoCo C, not float32 (docs/benchmarks.md, "CPU notes", session 41)."""
+    res = fidelity.compare_task(_robots(2), "incline", SolverOptions(), steps=25, x64=True)
+    for r in res:
+        assert 0.0 < r.mjx < 2e-4, (r.name, r.mjx)
+        assert 0.0 < r.mjx_step < 1e-6, (r.name, r.mjx_step)
+        assert 0.0 < r.mjx_ulp < 1e-10, (r.name, r.mjx_ulp)
+    assert jnp.zeros(()).dtype == jnp.float32          # the context ends with the call
+
+
+def test_terrains_are_the_same_under_float64():
+    """A float64 fidelity check (`x64=true`) runs on the terrain a float32 run draws from the same key: the
+    generators draw int32 indices and float32 values whatever `jax.enable_x64` says."""
+    from mjx_morph.sim.terrain import corridor, obstacles
+    for key in jax.random.split(jax.random.PRNGKey(5), 3):
+        for gen in (corridor.generate, obstacles.generate):
+            a = jax.tree_util.tree_leaves(gen(key))
+            with jax.enable_x64(True):
+                b = jax.tree_util.tree_leaves(gen(key))
+            for x, y in zip(a, b):
+                assert x.dtype == y.dtype and np.array_equal(np.asarray(x), np.asarray(y)), gen
 
 
 @pytest.mark.parametrize("incline", [0.0, 10.0])

@@ -259,8 +259,9 @@ class UnimalEnv:
         tab = self._row(self.tables, robot)
         m = self.sm.model_for(robot)
         s = self.config.reset_noise
-        qpos = m.qpos0 + jax.random.uniform(kq, m.qpos0.shape, minval=-s, maxval=s) * tab.real_qpos
-        qvel = jax.random.uniform(kv, (m.nv,), minval=-s, maxval=s) * tab.real_dof
+        noise = lambda k, n: jax.random.uniform(k, (n,), jnp.float32, -s, s).astype(m.qpos0.dtype)  # noqa: E731
+        qpos = m.qpos0 + noise(kq, m.qpos0.shape[0]) * tab.real_qpos       # float32 draws: under jax.enable_x64
+        qvel = noise(kv, m.nv) * tab.real_dof                              # (fidelity checks) the same start
         ts = self.terrain.generate(kt)
         obs, torso_x = self._observe(robot, qpos, qvel, ts, jnp.zeros((NUM_ACTIONS,), jnp.float32))
         return EnvState(physics=Physics(qpos=qpos, qvel=qvel, qacc_warmstart=jnp.zeros_like(qvel)),

@@ -290,7 +290,8 @@ class TaskResult:
 
 
 def compare_task(robots: Sequence[Morphology], task: str, options: SolverOptions = SolverOptions(),
-                 steps: int = 25, seed: int = 0, trace: Sequence[str] = (), **env_options) -> list[TaskResult]:
+                 steps: int = 25, seed: int = 0, trace: Sequence[str] = (), x64: bool = False,
+                 **env_options) -> list[TaskResult]:
     """The tasks beyond ft (incline, csr, obstacle): every robot in the env's padded MJX model against the same padded
     model in MuJoCo C (float64) on MetaMorph's ground (`Terrain.reference_world`: the incline's slab box, the height
     fields' patch), from the env's own reset state (a generated terrain) under N(0, 0.9) actions. On csr and
@@ -307,9 +308,15 @@ def compare_task(robots: Sequence[Morphology], task: str, options: SolverOptions
     per-step error. `trace`: names of robots whose MuJoCo C contacts (run and restart, every substep) are kept in
     `TaskResult.contacts`, to see what a large step error was: a contact that one state makes and the other, a
     hair away, does not (a contact within ~1e-6 m of touching, which float32 rounding decides, changes a step by
-    as much as the body's speed times a substep)."""
+    as much as the body's speed times a substep). `x64`: the env in float64 (`jax.enable_x64`; the env and its
+    model are built inside), so MJX's float32 is out of the comparison and `mjx_ulp` is float64's own spread."""
+    with jax.enable_x64(True) if x64 else contextlib.nullcontext():
+        return _compare_task(tuple(robots), task, options, steps, seed, tuple(trace),
+                             np.float64 if x64 else np.float32, env_options)
+
+
+def _compare_task(robots, task, options, steps, seed, trace, dtype, env_options) -> list[TaskResult]:
     from .env import EnvConfig, UnimalEnv
-    robots = tuple(robots)
     env = UnimalEnv(robots, EnvConfig(task=task, iterations=options.iterations, ls_iterations=options.ls_iterations,
                                       self_collision=options.self_collision, **env_options))
     if env.task.name == "ft":
@@ -328,10 +335,11 @@ def compare_task(robots: Sequence[Morphology], task: str, options: SolverOptions
         return jax.lax.scan(body, state, acts)[1]
     run_all = jax.jit(jax.vmap(run))
     physics = jax.tree_util.tree_map(lambda x: np.asarray(x, np.float64),
-                                     run_all(start, jnp.asarray(actions, jnp.float32)))    # (R, steps, ...) each
-    nudged = start._replace(physics=start.physics._replace(qpos=jnp.asarray(ulp_nudge(start.physics.qpos, rng)),
-                                                           qvel=jnp.asarray(ulp_nudge(start.physics.qvel, rng))))
-    qpos_ulp = np.asarray(run_all(nudged, jnp.asarray(actions, jnp.float32)).qpos, np.float64)
+                                     run_all(start, jnp.asarray(actions, dtype)))    # (R, steps, ...) each
+    nudge = lambda x: jnp.asarray(ulp_nudge(x, rng, dtype))                       # noqa: E731
+    nudged = start._replace(physics=start.physics._replace(qpos=nudge(start.physics.qpos),
+                                                           qvel=nudge(start.physics.qvel)))
+    qpos_ulp = np.asarray(run_all(nudged, jnp.asarray(actions, dtype)).qpos, np.float64)
 
     hfield = env.terrain.uses_hfield
     patch = jax.jit(env.terrain.patch) if hfield else None
@@ -354,7 +362,7 @@ def compare_task(robots: Sequence[Morphology], task: str, options: SolverOptions
 
         def control_step(dd, ctrl, counts, log):
             if hfield:                                   # the patch centred under this state's own torso
-                data, pos = patch(ts, jnp.float32(dd.qpos[0]), jnp.float32(dd.qpos[1]))
+                data, pos = patch(ts, jnp.asarray(dd.qpos[0], dtype), jnp.asarray(dd.qpos[1], dtype))
                 mm.hfield_data[:] = np.asarray(data, np.float64)
                 mm.geom_pos[env._hgeom] = np.asarray(pos, np.float64)
             dd.ctrl[:] = ctrl

@@ -69,10 +69,10 @@ def proprio(xpos, xquat, cvel, subtree_com, qpos, qvel, tab, node_mask, act_mask
     v = qvel[tab.vadr_of_action]
     dyn = jnp.concatenate([p, lin, ang, xquat[b]], axis=-1)                      # (12, 13)
     joint = jnp.stack([q, v], axis=-1).reshape(12, 2, 2)                         # (12, slot, [qpos, qvel])
-    out = tab.static_feat
-    out = out.at[:, :13].set(dyn)
-    out = out.at[:, 30:32].set(joint[:, 0])
-    out = out.at[:, 41:43].set(joint[:, 1])
+    out = tab.static_feat                                  # float32: also where the physics runs in float64
+    out = out.at[:, :13].set(dyn.astype(out.dtype))
+    out = out.at[:, 30:32].set(joint[:, 0].astype(out.dtype))
+    out = out.at[:, 41:43].set(joint[:, 1].astype(out.dtype))
     return mask_features(out, node_mask, act_mask)
 
 

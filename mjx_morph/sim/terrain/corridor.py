@@ -20,7 +20,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .grid import DIVS, ROWS, START_COL
+from .grid import DIVS, ROWS, START_COL, pick
 
 CSR_COLS = 1100           # 2 * 55 m
 FLAT_HALF_LEN = np.array([1, 2, 3])                     # FLAT_LENGTH_RANGE [1, 3, 1]
@@ -59,16 +59,16 @@ def generate(key: jax.Array) -> Corridor:
         end, nrug = carry
         kt, kf, kh, kc = jax.random.split(k, 4)
         active = end < CSR_COLS
-        typ = jax.random.choice(kt, jnp.array([CURVE, RUGGED, STEPS]))
-        flat = jax.random.choice(kf, jnp.asarray(FLAT_HALF_LEN)) * 2 * DIVS
+        typ = pick(kt, jnp.array([CURVE, RUGGED, STEPS], jnp.int32))
+        flat = pick(kf, jnp.asarray(FLAT_HALF_LEN, jnp.int32)) * 2 * DIVS
         flat = jnp.where(active, jnp.minimum(flat, CSR_COLS - end), 0)
         end1 = end + flat
-        half = jnp.where(typ == STEPS, jax.random.choice(kh, jnp.asarray(STEP_HALF_LEN)),
-                         jax.random.choice(kh, jnp.asarray(HFIELD_HALF_LEN)))
+        half = jnp.where(typ == STEPS, pick(kh, jnp.asarray(STEP_HALF_LEN, jnp.int32)),
+                         pick(kh, jnp.asarray(HFIELD_HALF_LEN, jnp.int32)))
         ncol = half * 2 * DIVS
         ok = active & (end1 + ncol <= CSR_COLS)
         end2 = end1 + jnp.where(ok, ncol, 0)
-        height = jax.random.choice(kc, jnp.asarray(CURVE_HEIGHT, jnp.float32))
+        height = pick(kc, jnp.asarray(CURVE_HEIGHT, jnp.float32))
         rug = jnp.minimum(nrug, MAX_RUGGED - 1)
         seg = (jnp.stack([end1, end2]), jnp.stack([FLAT, typ]), jnp.stack([0.0, height]), jnp.stack([0, rug]))
         return (end2, nrug + (ok & (typ == RUGGED))), seg
@@ -77,12 +77,12 @@ def generate(key: jax.Array) -> Corridor:
     _, (end, kind, height, rug) = jax.lax.scan(body, (jnp.int32(2 * START_COL), jnp.int32(0)), keys)
     cat = lambda first, x: jnp.concatenate([jnp.asarray([first], x.dtype), x.reshape(-1)])
     kw, kf, kc = jax.random.split(k_rug, 3)
-    widths = jax.random.randint(kw, (MAX_RUGGED, MAX_BANDS), 10, 20)
+    widths = jax.random.randint(kw, (MAX_RUGGED, MAX_BANDS), 10, 20, jnp.int32)
     return Corridor(seg_end=cat(2 * START_COL, end).astype(jnp.int32), seg_kind=cat(FLAT, kind).astype(jnp.int32),
                     seg_height=cat(0.0, height).astype(jnp.float32), seg_rug=cat(0, rug).astype(jnp.int32),
                     band_end=jnp.cumsum(widths, axis=1).astype(jnp.int32),
-                    band_f=jax.random.choice(kf, jnp.asarray(RUGGED_F, jnp.float32), (MAX_RUGGED, MAX_BANDS)),
-                    band_clip=jax.random.choice(kc, jnp.asarray(RUGGED_CLIP, jnp.float32), (MAX_RUGGED, MAX_BANDS)))
+                    band_f=pick(kf, jnp.asarray(RUGGED_F, jnp.float32), (MAX_RUGGED, MAX_BANDS)),
+                    band_clip=pick(kc, jnp.asarray(RUGGED_CLIP, jnp.float32), (MAX_RUGGED, MAX_BANDS)))
 
 
 def _sawtooth_half(t: jax.Array) -> jax.Array:

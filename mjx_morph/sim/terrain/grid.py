@@ -30,6 +30,12 @@ Z_LO, Z_HI = GAP, 5.2     # physical height-field range (data = (z - Z_LO) / (Z_
 HFIELD_BASE = 0.1
 
 
+def pick(key: jax.Array, values: jax.Array, shape: tuple[int, ...] = ()) -> jax.Array:
+    """Entries of `values` drawn uniformly: `jax.random.choice`'s draw (an int32 index) made explicit, so that a
+    terrain is the same under `jax.enable_x64` (float64 fidelity checks) as in float32."""
+    return values[jax.random.randint(key, shape, 0, values.shape[0], jnp.int32)]
+
+
 def cell_of(x: jax.Array, y: jax.Array) -> tuple[jax.Array, jax.Array]:
     """MetaMorph's `pos_to_idx` in unpadded cell coordinates."""
     return (START_COL + jnp.floor(x * DIVS)).astype(jnp.int32), (HALF_ROWS - jnp.floor(y * DIVS)).astype(jnp.int32)

@@ -17,7 +17,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .grid import DIVS, ROWS
+from .grid import DIVS, ROWS, pick
 
 OBS_COLS = 1000           # 2 * 50 m
 WALL_CELLS = 10           # wall ring (2 * WALL_LENGTH * DIVS)
@@ -46,14 +46,15 @@ class Obstacles(NamedTuple):
 def generate(key: jax.Array) -> Obstacles:
     """50 attempts to place a box of half-lengths in {0.5, ..., 1.0} m, each with up to 10 uniform draws of its
     centre on the 400 x 1000 placement grid, rejected if its footprint overlaps an earlier box (touching allowed)."""
-    sizes = jnp.asarray(OBSTACLE_CELLS)
+    sizes = jnp.asarray(OBSTACLE_CELLS, jnp.int32)
 
     def body(placed, k):
         kx, ky, kr, kc = jax.random.split(k, 4)
-        sx = jax.random.choice(kx, sizes)
-        sy = jax.random.choice(ky, sizes)
-        row = jax.random.randint(kr, (PLACEMENT_TRIES,), sy, ROWS - sy)
-        col = jax.random.randint(kc, (PLACEMENT_TRIES,), sx + PLACEMENT_BUFFER, OBS_COLS - sx - PLACEMENT_BUFFER)
+        sx = pick(kx, sizes)
+        sy = pick(ky, sizes)
+        row = jax.random.randint(kr, (PLACEMENT_TRIES,), sy, ROWS - sy, jnp.int32)
+        col = jax.random.randint(kc, (PLACEMENT_TRIES,), sx + PLACEMENT_BUFFER, OBS_COLS - sx - PLACEMENT_BUFFER,
+                                 jnp.int32)
         pc, pr, psx, psy, pv = placed          # (50,) each; invalid ones have size 0
         overlap = ((col[:, None] - sx < pc + psx) & (pc - psx < col[:, None] + sx)
                    & (row[:, None] - sy < pr + psy) & (pr - psy < row[:, None] + sy) & pv)
