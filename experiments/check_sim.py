@@ -193,6 +193,8 @@ def check(a: CheckSimConfig) -> None:
         rs = dataclasses.replace(rs, name=f"{rs.name}[:{a.num_robots}]", robots=tuple(rs.robots[:a.num_robots]))
     if a.task != "ft":
         return check_task(a, rs)
+    if a.trace:
+        raise ValueError(f"trace={a.trace}: needs task=incline, csr or obstacle (ft's check runs each robot alone)")
     alone = _range(a.unpadded_range, len(rs))
     if alone is not None and not a.unpadded_mjx:
         raise ValueError(f"unpadded_range={a.unpadded_range!r} needs unpadded_mjx=true")
@@ -314,15 +316,15 @@ def print_trace(r) -> None:
     (distance, geoms), those one side has and the other not marked *."""
     print(f"# trace {r.name}: control step, mjx, ulp, step (m); MuJoCo C's contacts after each substep, run / "
           "restart")
+    worst = int(np.argmax(r.step_steps))
     for t in range(len(r.steps)):
         run, restart = (",".join(str(int(n)) for n in r.ncon[t, i]) for i in (0, 1))
-        mark = "   <- largest step error" if t == int(np.argmax(r.step_steps)) else ""
+        mark = "   <- largest step error" if t == worst else ""
         print(f"  {t:3d}  {r.steps[t]:9.2e}  {r.ulp_steps[t]:9.2e}  {r.step_steps[t]:9.2e}   {run:>12s} / "
               f"{restart:<12s}{mark}")
-    t = int(np.argmax(r.step_steps))
-    print(f"# trace {r.name}: MuJoCo C's contacts at control step {t} (distance m, geom x geom; * = a pair only one "
+    print(f"# trace {r.name}: MuJoCo C's contacts at control step {worst} (distance m, geom x geom; * = a pair only one "
           "side has, or has more of)")
-    for k, (run, restart) in enumerate(zip(*r.contacts[t])):
+    for k, (run, restart) in enumerate(zip(*r.contacts[worst])):
         for label, mine, other in (("run    ", run, restart), ("restart", restart, run)):
             mine_pairs, other_pairs = [c[1:] for c in mine], [c[1:] for c in other]
             cells = [f"{dist:.2e} {g1} x {g2}{'*' if mine_pairs.count((g1, g2)) > other_pairs.count((g1, g2)) else ''}"

@@ -118,7 +118,7 @@ def test_incline_matches_mujoco_c_on_metamorphs_slab(capsys):
         assert 0.0 < r.mjx < 2e-4, (r.name, r.mjx)
         assert 0.0 < r.mjx_step < 1e-5, (r.name, r.mjx_step)
         assert 0.0 < r.mjx_ulp < 1e-4, (r.name, r.mjx_ulp)     # the nudged start ran, and stayed near
-        assert r.step_steps.max() == r.mjx_step and r.ulp_steps.max() == r.mjx_ulp
+        assert r.steps.shape == r.ulp_steps.shape == r.step_steps.shape == (25,)
         substeps = r.ncon.shape[2]
         assert r.ncon.shape == (25, 2, substeps) and r.ncon.min() >= 0 and r.ncon.max() > 0   # a robot on its slab
         # the restart and the run start control step 0 from one state: the same contacts in its first substep
@@ -339,6 +339,8 @@ def test_check_sim_slices_the_alone_runs_and_writes_csv(tmp_path, capsys):
     assert "needs unpadded_mjx=true" in capsys.readouterr().err
     assert check_sim.main(["gen/train", "num_robots=2", "task=incline", "trace=[no-such-robot]"]) == 2
     assert "trace='no-such-robot'" in capsys.readouterr().err
+    assert check_sim.main(["gen/train", "num_robots=2", "trace=[gen-0-0]"]) == 2      # ft: no trace
+    assert "needs task=incline, csr or obstacle" in capsys.readouterr().err
     assert check_sim.main([f"merge=[{out},{out}]"]) == 0          # the same slice twice: its own values agree
     assert "1 of 2 robots run alone in MJX" in capsys.readouterr().out
 

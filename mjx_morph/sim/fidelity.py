@@ -277,16 +277,28 @@ def _compare(robots, options, steps, substeps, seed, tree, compiler_options, flo
 @dataclasses.dataclass
 class TaskResult:
     name: str
-    mjx: float              # max body-position error (m), padded MJX against padded MuJoCo C on MetaMorph's ground
-    steps: np.ndarray       # per control step
-    mjx_ulp: float          # max body-position difference, padded MJX against itself started one float32 ulp away
-    mjx_step: float         # max body-position error of one control step, MuJoCo C restarted from MJX's state
-    step_steps: np.ndarray  # mjx_step per control step
-    ulp_steps: np.ndarray   # mjx_ulp per control step
+    steps: np.ndarray       # per control step: body-position error (m), padded MJX against padded MuJoCo C
+    ulp_steps: np.ndarray   # per control step: padded MJX against itself started one ulp away
+    step_steps: np.ndarray  # per control step: error of that step alone, MuJoCo C restarted from MJX's state
     ncon: np.ndarray        # (steps, 2, substeps) MuJoCo C's contacts after each substep: [:, 0] its own run, [:, 1]
                             # the restart from MJX's state
     contacts: list | None = None   # traced robots only: [step][run 0 / restart 1][substep] = [(distance, geom,
                                    # geom)], MuJoCo C's contacts by geom name, deepest first
+
+    @property
+    def mjx(self) -> float:
+        """Max body-position error (m), padded MJX against padded MuJoCo C on MetaMorph's ground."""
+        return float(self.steps.max())
+
+    @property
+    def mjx_ulp(self) -> float:
+        """Max body-position difference, padded MJX against itself started one ulp away."""
+        return float(self.ulp_steps.max())
+
+    @property
+    def mjx_step(self) -> float:
+        """Max body-position error of one control step, MuJoCo C restarted from MJX's state."""
+        return float(self.step_steps.max())
 
 
 def compare_task(robots: Sequence[Morphology], task: str, options: SolverOptions = SolverOptions(),
@@ -386,6 +398,5 @@ def _compare_task(robots, task, options, steps, seed, trace, dtype, env_options)
             errs[t] = np.abs(x_mjx - x_c).max()
             step_errs[t] = np.abs(x_mjx - x_restart).max()
             spread[t] = np.abs(xpos(qpos_ulp[r, t]) - x_mjx).max()
-        out.append(TaskResult(m.name, float(errs.max()), errs, float(spread.max()), float(step_errs.max()),
-                              step_errs, spread, ncon, traced))
+        out.append(TaskResult(m.name, errs, spread, step_errs, ncon, traced))
     return out
