@@ -60,7 +60,7 @@ def test_a_flat_contact_budget_above_the_touching_contacts_changes_nothing():
     robots = _robots(2)
     for k, want in ((0, None), (12, 12)):
         env = UnimalEnv(robots, EnvConfig(task="ft", flat_contact_budget=k))
-        ncon = mjx.make_data(env.sm.model_for(0), impl="jax").contact.dist.shape[0]
+        ncon = mjx.make_data(env.sm.model_for(0), impl="jax")._impl.contact.dist.shape[0]
         assert (ncon == want) if want else ncon > 12, (k, ncon)
     with pytest.raises(ValueError, match="env.flat_contact_budget=-1"):
         UnimalEnv(robots, EnvConfig(task="ft", flat_contact_budget=-1))
@@ -73,7 +73,7 @@ def test_a_flat_contact_budget_above_the_touching_contacts_changes_nothing():
             collide = jax.jit(lambda m, d: mjx.collision(m, mjx.kinematics(m, d)))
             for r in range(len(robots)):
                 m = env.sm.model_for(r)
-                c = collide(m, mjx.make_data(m, impl="jax")).contact
+                c = collide(m, mjx.make_data(m, impl="jax"))._impl.contact
                 margin = np.asarray(m.geom_margin)[np.asarray(c.geom)].sum(axis=1)
                 never, dist = margin < contact.NEVER_ACTIVE, np.asarray(c.dist)
                 seen += never.sum()
