@@ -14,6 +14,7 @@
     python -m experiments.check_sim unimal100/train task=csr num_robots=5 hfield_contacts=mjx   # MJX's own collider
     python -m experiments.check_sim unimal100/train task=csr 'trace=[mvt-5506-12-4]'   # one robot step by step
     python -m experiments.check_sim unimal100/train task=csr x64=true     # the env in float64: float32's share
+    python -m experiments.check_sim unimal100/train task=incline x64=true c_gap=true   # MuJoCo C with MJX's gap
 
 Prints per robot the worst body-position error (m) over `steps` control steps of the padded MJX robot against the
 robot alone in MuJoCo C on MetaMorph's floor, split into the padding's share (padded vs alone, both MuJoCo C) and
@@ -82,6 +83,8 @@ class CheckSimConfig:
     x64: bool = False                        # run MJX in float64 (jax.enable_x64): with unpadded_mjx, padding_mjx
                                              # is the padding's own error in MJX without float32's rounding; with
                                              # task=..., the env in float64 against MuJoCo C (float32's share)
+    c_gap: bool = False                      # task=...: MuJoCo C with MJX's robot-robot contact gap too
+                                             # (model.SELF_CONTACT_GAP): only the engines differ
     unpadded_range: str = ""                 # "lo:hi": with unpadded_mjx, only robots lo..hi-1 alone in MJX (the
                                              # rest print nan), each as in a run over all robots: slices add up
     trace: List[str] = dataclasses.field(default_factory=list)   # task=...: robots (names or their beginnings)
@@ -193,8 +196,10 @@ def check(a: CheckSimConfig) -> None:
         rs = dataclasses.replace(rs, name=f"{rs.name}[:{a.num_robots}]", robots=tuple(rs.robots[:a.num_robots]))
     if a.task != "ft":
         return check_task(a, rs)
-    if a.trace:
-        raise ValueError(f"trace={a.trace}: needs task=incline, csr or obstacle (ft's check runs each robot alone)")
+    for key, value in (("trace", a.trace), ("c_gap", a.c_gap)):
+        if value:
+            raise ValueError(f"{key}={value}: needs task=incline, csr or obstacle (ft's check runs each robot "
+                             "alone)")
     alone = _range(a.unpadded_range, len(rs))
     if alone is not None and not a.unpadded_mjx:
         raise ValueError(f"unpadded_range={a.unpadded_range!r} needs unpadded_mjx=true")
@@ -264,6 +269,7 @@ def check_task(a: CheckSimConfig, rs) -> None:
     traced = _traced(a.trace, rs)
     fl = "float64" if a.x64 else "float32"
     res = fidelity.compare_task(rs.robots, a.task, opts, steps=a.steps, seed=a.seed, trace=traced, x64=a.x64,
+                                c_gap=a.c_gap,
                                 hfield_contacts=a.hfield_contacts,
                                 hfield_contacts_per_geom=a.hfield_contacts_per_geom,
                                 hfield_candidates=a.hfield_candidates,
@@ -273,7 +279,8 @@ def check_task(a: CheckSimConfig, rs) -> None:
     budget = dataclasses.replace(_ENV, contact_budget=a.contact_budget,
                                  flat_contact_budget=a.flat_contact_budget).contact_cap(on_hfield)
     hfield = (f", height-field contacts {a.hfield_contacts}{rule_detail}" if on_hfield
-              else ", MetaMorph's slab in MuJoCo C") + f", contact budget {budget or 'none'}"
+              else ", MetaMorph's slab in MuJoCo C") + f", contact budget {budget or 'none'}" + (
+        ", MuJoCo C with MJX's robot-robot contact gap" if a.c_gap else "")
     print(f"# {rs.name} on {a.task}: {len(res)} robots, solver iterations {a.iterations}, line search "
           f"{a.ls_iterations}, {a.steps} control steps{hfield} "
           f"({time.time() - t0:.0f} s); mjx = padded MJX in {fl} vs padded MuJoCo C (float64), max body-position "

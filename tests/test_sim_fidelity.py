@@ -108,9 +108,9 @@ def test_incline_matches_mujoco_c_on_metamorphs_slab(capsys):
     over 1e-3 m and the median to 4.7e-5 m: docs/benchmarks.md, session 13). The bound is 2e-4 m: the second robot
     leaves MuJoCo C after a contact change at control step ~15 and drifts linearly to 9.1e-5 m (XLA's default CPU
     flags) or 1.09e-4 m (the suite's, fusion emitters off) by step 25 on an AVX-512 CPU, while MuJoCo C restarted
-    from MJX's state before every control step lands within 1.3e-7 m of MJX's next state (`mjx_step`): MJX's
-    per-step difference from MuJoCo C, amplified (in float64 too: the next test). So the step-by-step bound is the
-    tight one."""
+    from MJX's state before every control step lands within 1.3e-7 m of MJX's next state (`mjx_step`): float32's
+    per-step rounding and the robot-robot contact gap, amplified (in float64, with MuJoCo C given the gap, the
+    engines agree to ~1e-7 m: the next test). So the step-by-step bound is the tight one."""
     robots = _robots(2)
     res = fidelity.compare_task(robots, "incline", SolverOptions(), steps=25, trace=[robots[1].name])
     assert len(res) == 2
@@ -138,17 +138,18 @@ def test_incline_matches_mujoco_c_on_metamorphs_slab(capsys):
     assert f"contacts at control step {t} " in lines[26]
 
 
-def test_incline_in_float64_keeps_mjx_step_by_step_and_float64_tight():
+def test_incline_in_float64_is_mujoco_c_but_for_the_gap():
     """`compare_task(x64=True)`: the env traced in float64 (its observations stay float32) from the start a float32
-    run has. Without float32's rounding a one-ulp nudge stays at ~1e-14 m, and MJX's control steps stay within
-    ~1e-7 m of MuJoCo C's (5.3e-8 m for the second robot, 1.3e-7 in float32), yet its trajectory still ends 7.6e-5 m
-    away (1.09e-4 m in float32): what the trajectory amplifies is mostly MJX's own step-by-step difference from
-    MuJoCo C, not float32 (docs/benchmarks.md, "CPU notes", session 41)."""
-    res = fidelity.compare_task(_robots(2), "incline", SolverOptions(), steps=25, x64=True)
+    run has. Without float32's rounding a one-ulp nudge stays at ~1e-14 m, and with MuJoCo C given MJX's robot-robot
+    contact gap (`c_gap`) the two engines step alike to ~4e-10 m, trajectories within ~1e-7 m (the robots touch
+    the slab and themselves). Before session 42's capsule colliders (MJX's own, which project with |d|^2 + 1e-6)
+    the steps differed by ~1.5e-7 m and a trajectory ended 7.6e-5 m away (docs/benchmarks.md, "CPU notes")."""
+    res = fidelity.compare_task(_robots(2), "incline", SolverOptions(), steps=25, x64=True, c_gap=True)
     for r in res:
-        assert 0.0 < r.mjx < 2e-4, (r.name, r.mjx)
-        assert 0.0 < r.mjx_step < 1e-6, (r.name, r.mjx_step)
+        assert 0.0 < r.mjx < 1e-6, (r.name, r.mjx)
+        assert 0.0 < r.mjx_step < 2e-9, (r.name, r.mjx_step)
         assert 0.0 < r.mjx_ulp < 1e-10, (r.name, r.mjx_ulp)
+        assert r.ncon[:, 0].max() >= 2, r.name              # contacts were made (floor and self)
     assert jnp.zeros(()).dtype == jnp.float32          # the context ends with the call
 
 
@@ -278,6 +279,66 @@ def test_floor_contacts_equal_mujoco_c(incline):
     with pytest.raises(ValueError, match="floor_contacts='boxes'"):
         with contact.floor("boxes"):
             pass
+
+
+def _two_geoms(kinds, poses, sizes):
+    """Two free geoms (sphere or capsule along the body's x axis) at `poses` ((pos, quat) each), for MuJoCo C."""
+    bodies = []
+    for kind, (pos, quat), (radius, length) in zip(kinds, poses, sizes):
+        shape = (f'type="capsule" fromto="{-length!r} 0 0 {length!r} 0 0" size="{radius!r}"' if kind == "capsule"
+                 else f'type="sphere" size="{radius!r}"')
+        bodies.append(f'<body pos="{" ".join(repr(float(x)) for x in pos)}" '
+                      f'quat="{" ".join(repr(float(x)) for x in quat)}"><freejoint/><geom {shape}/></body>')
+    return mujoco.MjModel.from_xml_string(f"<mujoco><worldbody>{''.join(bodies)}</worldbody></mujoco>")
+
+
+@pytest.mark.parametrize("kinds", [("capsule", "capsule"), ("sphere", "capsule")])
+def test_robot_robot_contacts_equal_mujoco_c(kinds):
+    """The installed limb-limb (capsule-capsule) and torso-limb (sphere-capsule) colliders make MuJoCo C's contact:
+    distance, point and frame to 1e-12 in float64 (MJX's own colliders are ~1e-6 m off in the point, their segment
+    projections divide by |d|^2 + 1e-6), and to float32's precision in float32; random poses, the general case with
+    every clipping branch and, for two capsules, parallel axes (MuJoCo C makes up to two contacts there; the one
+    slot holds the deeper)."""
+    key = tuple(GeomType.SPHERE if k == "sphere" else GeomType.CAPSULE for k in kinds)
+    collide = collision_driver._COLLISION_FUNC[key]
+    assert collide.never_ranked and collide.ncon == 1
+    rng = np.random.default_rng(1)
+    seen = {"general": 0, "parallel": 0, "clipped": 0}
+    for i in range(40):
+        sizes = [(rng.uniform(0.03, 0.07), rng.uniform(0.05, 0.2)) for _ in kinds]
+        quats = [q / np.linalg.norm(q) for q in rng.normal(size=(2, 4))]
+        parallel = kinds[0] == "capsule" and i % 5 == 0
+        if parallel or kinds[0] == "sphere":     # capsules side by side, overlapping or not; the sphere beside the
+            quats[1] = quats[0].copy()           # capsule's axis or beyond its end
+        x0 = np.zeros(3)
+        mat = np.zeros(9)
+        mujoco.mju_quat2Mat(mat, quats[0])
+        side = np.cross(mat.reshape(3, 3)[:, 0], rng.normal(size=3))
+        offset = (side / np.linalg.norm(side) * (sizes[0][0] + sizes[1][0] - rng.uniform(0.0, 0.02))
+                  + mat.reshape(3, 3)[:, 0] * rng.uniform(-0.3, 0.3) * (0.5 if parallel else 1.0))
+        mm = _two_geoms(kinds, [(x0, quats[0]), (offset, quats[1])], sizes)
+        d = mujoco.MjData(mm)
+        mujoco.mj_forward(mm, d)
+        if d.ncon == 0:
+            continue
+        seen["parallel" if parallel else "general"] += 1
+        for dtype, tol in ((np.float64, 1e-12), (np.float32, 3e-6)):
+            with jax.enable_x64(dtype == np.float64):
+                m = mjx.put_model(mm, impl="jax")
+                dx = mjx.kinematics(m, mjx.make_data(m, impl="jax").replace(qpos=jnp.asarray(d.qpos, dtype)))
+                dist, cpos, frame = (np.asarray(v)[0] for v in collide(m, dx, None, jnp.asarray([[0, 1]])))
+            assert dist.dtype == dtype
+            # parallel axes: one of C's contacts (C orders a pair's contacts in no fixed way), the deepest
+            want = min(d.contact[:d.ncon], key=lambda c: (c.dist > dist + tol, np.abs(c.pos - cpos).max()))
+            assert abs(dist - min(d.contact.dist[:d.ncon])) < tol, (i, dtype)
+            assert abs(dist - want.dist) < tol and np.abs(cpos - want.pos).max() < tol, (i, dtype, dist, want.dist)
+            np.testing.assert_allclose(frame.ravel(), np.asarray(want.frame), atol=tol * 10, err_msg=f"{i} {dtype}")
+        if not parallel:        # the contact beyond a segment's end: a clipped parameter
+            g = 0 if kinds[0] == "capsule" else 1
+            half = np.asarray(mm.geom_size[g][1] * d.geom_xmat[g].reshape(3, 3)[:, 2])
+            seen["clipped"] += abs((want.pos - d.geom_xpos[g]) @ half / (half @ half)) > 0.99
+    assert seen["general"] > 8 and seen["clipped"] > 2, seen
+    assert kinds[0] == "sphere" or seen["parallel"] > 3, seen
 
 
 def test_cpu_cholesky_matches_lapack():

@@ -39,7 +39,8 @@ Public API:
 
 Process-wide patches of MJX, made once when this package is imported (below): `contact.install()` (the
 floor-capsule collider of every MJX step traced in the process applies the rule of the `contact.floor(rule)` block
-being traced, MuJoCo C's box-face contacts outside any; an env traces its step inside `floor(config.floor_contacts)`),
+being traced, MuJoCo C's box-face contacts outside any; an env traces its step inside `floor(config.floor_contacts)`;
+limb-limb and torso-limb contacts are MuJoCo C's closed forms instead of MJX's regularised ones),
 `hfield_contact.install()` (likewise the height-field sphere / capsule colliders and `hfield_contact.rule(...)`,
 MuJoCo C's contacts outside any block; the rule also sizes MJX's contact arrays, so an env runs `make_data` and its
 steps inside `UnimalEnv.physics()`) and `cpu_linalg.install()` (pure-JAX Cholesky in MJX on CPU with jaxlib < 0.11).
@@ -64,7 +65,7 @@ Deviations from MetaMorph / ModuMorph (each documented in its module):
   MetaMorph read them (observation.py).
 """
 # MJX is patched once, when this package is imported (the missing-Warp message was silenced by mjx_morph's
-# own import): MuJoCo C's floor-capsule contacts (contact.py), MuJoCo C's height-field sphere / capsule contacts
+# own import): MuJoCo C's floor-capsule and robot-robot contacts (contact.py), MuJoCo C's height-field contacts
 # (hfield_contact.py) and, on old CPU jaxlibs, a pure-JAX Cholesky.
 from . import contact, cpu_linalg, hfield_contact  # noqa: E402
 

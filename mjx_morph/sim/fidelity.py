@@ -95,11 +95,14 @@ class Result:
                                         # a `flat_contact_budget` at or above it changes no force)
 
 
-def padded_c_models(sm, world: WorldSpec = METAMORPH_WORLD) -> list[mujoco.MjModel]:
+def padded_c_models(sm, world: WorldSpec = METAMORPH_WORLD, self_gap: bool = False) -> list[mujoco.MjModel]:
     """The stacked model's padded robots compiled for MuJoCo C in `world` (MetaMorph's box floor by default), with
-    the stacked model's options (self-collision pair cut included) and its inert geoms never in contact."""
+    the stacked model's options (self-collision pair cut included) and its inert geoms never in contact; with
+    `self_gap`, MJX's robot-robot contact gap too (`model.self_contact_margin`), which MetaMorph's model lacks."""
     out = compile_padded(sm.robots, sm.tree, world, sm.options)
     for r, mm in enumerate(out):
+        if self_gap:
+            mm.geom_margin[:] += self_contact_margin(mm.geom_bodyid)
         mm.geom_margin[inert_geoms(sm.tree, r, mm)] = INERT_MARGIN
     return out
 
@@ -303,7 +306,7 @@ class TaskResult:
 
 def compare_task(robots: Sequence[Morphology], task: str, options: SolverOptions = SolverOptions(),
                  steps: int = 25, seed: int = 0, trace: Sequence[str] = (), x64: bool = False,
-                 **env_options) -> list[TaskResult]:
+                 c_gap: bool = False, **env_options) -> list[TaskResult]:
     """The tasks beyond ft (incline, csr, obstacle): every robot in the env's padded MJX model against the same padded
     model in MuJoCo C (float64) on MetaMorph's ground (`Terrain.reference_world`: the incline's slab box, the height
     fields' patch), from the env's own reset state (a generated terrain) under N(0, 0.9) actions. On csr and
@@ -321,13 +324,15 @@ def compare_task(robots: Sequence[Morphology], task: str, options: SolverOptions
     `TaskResult.contacts`, to see what a large step error was: a contact that one state makes and the other, a
     hair away, does not (a contact within ~1e-6 m of touching, which float32 rounding decides, changes a step by
     as much as the body's speed times a substep). `x64`: the env in float64 (`jax.enable_x64`; the env and its
-    model are built inside), so MJX's float32 is out of the comparison and `mjx_ulp` is float64's own spread."""
+    model are built inside), so MJX's float32 is out of the comparison and `mjx_ulp` is float64's own spread.
+    `c_gap`: MuJoCo C with MJX's robot-robot contact gap too (`model.SELF_CONTACT_GAP`, 1e-7 m; MetaMorph's model
+    has none), so that only the engines differ: in float64 the step errors then show MJX's own difference."""
     with jax.enable_x64(True) if x64 else contextlib.nullcontext():
         return _compare_task(tuple(robots), task, options, steps, seed, tuple(trace),
-                             np.float64 if x64 else np.float32, env_options)
+                             np.float64 if x64 else np.float32, c_gap, env_options)
 
 
-def _compare_task(robots, task, options, steps, seed, trace, dtype, env_options) -> list[TaskResult]:
+def _compare_task(robots, task, options, steps, seed, trace, dtype, c_gap, env_options) -> list[TaskResult]:
     from .env import EnvConfig, UnimalEnv
     env = UnimalEnv(robots, EnvConfig(task=task, iterations=options.iterations, ls_iterations=options.ls_iterations,
                                       self_collision=options.self_collision, **env_options))
@@ -357,7 +362,7 @@ def _compare_task(robots, task, options, steps, seed, trace, dtype, env_options)
     patch = jax.jit(env.terrain.patch) if hfield else None
     tab = jax.tree_util.tree_map(np.asarray, sm.tables)
     out = []
-    for r, (m, mm) in enumerate(zip(robots, padded_c_models(sm, env.terrain.reference_world()))):
+    for r, (m, mm) in enumerate(zip(robots, padded_c_models(sm, env.terrain.reference_world(), c_gap))):
         ts = jax.tree_util.tree_map(lambda x: x[r], start.episode.terrain)
         first = jax.tree_util.tree_map(lambda x: np.asarray(x[r], np.float64), start.physics)
         d, ds, dk = mujoco.MjData(mm), mujoco.MjData(mm), mujoco.MjData(mm)   # the run, the restarts, kinematics
