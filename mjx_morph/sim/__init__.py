@@ -58,7 +58,6 @@ Deviations from MetaMorph / ModuMorph (each documented in its module):
 - ft and incline are simulated in MetaMorph's world moved so that the torso starts on the ground at the origin
   (`Terrain.origin`: ft 1 m down, incline 72 m along x and 11.7 m up), where float32 resolves the contacts finely;
   the observation adds the origin back (observation.py), so the policy sees MetaMorph's coordinates (terrain/);
-- capsule masses of MuJoCo >= 2.1 (3-5% above MuJoCo 2.0) (padding.py);
 - a NaN or exploding state ends the episode as `unstable` (MetaMorph: a MuJoCo exception silently skipped the
   remaining substeps) (env.py);
 - body_xvelp / body_xvelr are mujoco-py's read after `mj_step` (velocity of the body origin, the new qvel), as

@@ -63,7 +63,7 @@ def alone_model(m: Morphology, options: SolverOptions, floor: str = METAMORPH_FL
     """The robot alone in MuJoCo C, on MetaMorph's ft floor (or `floor`, top z = 0 in the env's frame, 1 in
     MetaMorph's), standing where the env starts it, with the padded model's options and contact filter."""
     z_offset = FLOOR_WORLD.start_pose(m.height)[0][2] - m.height
-    xml = to_mjcf(m, floor=True, z_offset=z_offset)
+    xml = to_mjcf(m, floor=True, z_offset=z_offset, inertials=True)
     xml = xml.replace('<geom name="floor" type="plane" size="50 50 0.1" pos="0 0 0"/>', floor.strip())
     mm = mujoco.MjModel.from_xml_string(xml)
     floor = mujoco.mj_name2id(mm, mujoco.mjtObj.mjOBJ_GEOM, "floor")

@@ -11,10 +11,10 @@ motors, so all padded robots of a set compile to models of one static structure 
   negative margin (see `model.py`), which MJX's constraint builder treats as "never active".
 Observation and action masks hide locked joints and inert slots (`model.py`).
 
-Masses: a real slot's capsule is written exactly as in the robot's file, so MuJoCo 4 computes its mass and
-inertia as for the robot alone; like every current MuJoCo (and MJX) that is 3-5% more than the MuJoCo 2.0 of the
-original runs gave (MuJoCo >= 2.1 adds the hemispherical caps to a capsule's volume). A
-documented deviation, not corrected.
+Masses: a real slot's capsule is written exactly as in the robot's file, with an explicit `<inertial>` that gives
+it the mass and inertia MetaMorph's MuJoCo 2.0 computed (`unimal.mjcf.limb_inertial`: a cylinder over the
+segment plus one radius; current MuJoCo counts the hemispherical caps, 3-5% more), as the robot alone gets them
+(`compile_model`).
 
 The world (floor, incline, height field) and the options (solver iterations, self-collision) come from the caller;
 robot geoms use contype 1 and conaffinity 1 with self-collision on, 0 with it off; terrain geoms contype 0,
@@ -30,7 +30,7 @@ import math
 
 import numpy as np
 
-from ..unimal.mjcf import format_number as _num, format_vector as _vec  # the writer's exact formatting
+from ..unimal.mjcf import format_number as _num, format_vector as _vec, limb_inertial  # the writer's exact formatting
 from ..unimal.morphology import Joint, Morphology
 from .selfcontact import candidate_slot_pairs
 from .supertree import SharedTree
@@ -181,6 +181,7 @@ def padded_mjcf(m: Morphology, tree: SharedTree, robot: int, world: WorldSpec = 
                 lines.append(_joint(f"slot{k}/{slot}", l.joint(k), k, indent + "  "))
             lines.append(f'{indent}  <geom name="slot/{slot}" fromto="0 0 0 {_vec(l.tip)}" size="{_num(l.radius)}" '
                          f'density="{_num(l.density)}"/>')
+            lines.append(f"{indent}  {limb_inertial(l)}")
         for c in tree.children(slot):
             write(c, indent + "  ")
         lines.append(f"{indent}</body>")

@@ -36,9 +36,21 @@ def format_vector(v) -> str:
 _num, _vec = format_number, format_vector     # short names for this module's f-strings
 
 
-def to_mjcf(m: Morphology, *, sites: bool = False, floor: bool = False, z_offset: float = 0.0) -> str:
+def limb_inertial(l) -> str:
+    """The `<inertial>` element of a limb's body: MetaMorph's capsule mass and inertia (`Limb.mass`), which MuJoCo
+    >= 2.1.2 no longer computes from the geom."""
+    i = l.inertia()
+    full = (i[0, 0], i[1, 1], i[2, 2], i[0, 1], i[0, 2], i[1, 2])
+    return (f'<inertial pos="{_vec(np.asarray(l.tip, np.float64) / 2.0)}" mass="{_num(l.mass)}" '
+            f'fullinertia="{_vec(full)}"/>')
+
+
+def to_mjcf(m: Morphology, *, sites: bool = False, floor: bool = False, z_offset: float = 0.0,
+            inertials: bool = False) -> str:
     """MJCF text for one robot. `floor` adds a plane at z = 0 (for stand-alone checks); `z_offset` raises the
-    torso (MetaMorph's worlds put the floor top at z = 1; ours at 0, sim/terrain)."""
+    torso (MetaMorph's worlds put the floor top at z = 1; ours at 0, sim/terrain); `inertials` gives each limb
+    MetaMorph's mass and inertia (`limb_inertial`; what the simulation compiles), without them MuJoCo computes its
+    own from the capsule (the robot files, as UNIMAL writes them)."""
     lines = [
         f"<mujoco model={quoteattr(m.name)}>",
         '  <compiler angle="degree"/>',
@@ -74,6 +86,8 @@ def to_mjcf(m: Morphology, *, sites: bool = False, floor: bool = False, z_offset
                 f'stiffness="{_num(j.stiffness)}"/>')
         lines.append(f'{indent}  <geom name="limb/{l.id}" fromto="0 0 0 {_vec(l.tip)}" size="{_num(l.radius)}" '
                      f'density="{_num(l.density)}"/>')
+        if inertials:
+            lines.append(f"{indent}  {limb_inertial(l)}")
         if sites:
             # DERL's sites: v(r + h/2), v(r + h) and v(2r + h) along the limb, each component rounded to 2
             # decimals; the segment length r + h is the nominal one (0.25/0.35/0.45), not |tip| of the rounded tip
@@ -99,8 +113,9 @@ def to_mjcf(m: Morphology, *, sites: bool = False, floor: bool = False, z_offset
 
 
 def compile_model(m: Morphology, **kwargs) -> mujoco.MjModel:
-    """Compile the robot with MuJoCo (kwargs go to `to_mjcf`)."""
-    return mujoco.MjModel.from_xml_string(to_mjcf(m, **kwargs))
+    """Compile the robot with MuJoCo, with MetaMorph's limb masses (kwargs go to `to_mjcf`; `inertials=True`
+    unless given)."""
+    return mujoco.MjModel.from_xml_string(to_mjcf(m, **{"inertials": True, **kwargs}))
 
 
 def metadata(m: Morphology) -> dict:

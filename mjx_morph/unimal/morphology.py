@@ -63,6 +63,22 @@ class Limb:
         """Capsule segment length (r + h in DERL's notation)."""
         return float(np.linalg.norm(self.tip))
 
+    # Mass and inertia as MetaMorph's MuJoCo 2.0 computed them from the capsule (`inertiafromgeom`): a solid
+    # cylinder of the capsule's radius over its segment extended by half a radius at each end. MuJoCo's 2.1.2
+    # changelog records the change to the exact capsule (hemispherical caps counted: 3-5% more mass for these
+    # limbs). ModuMorph's stored context bound for the lightest limb, 1.17809725, is this mass (density 500,
+    # L = 0.25, r = 0.05).
+    @property
+    def mass(self) -> float:
+        return self.density * np.pi * self.radius**2 * (self.length + self.radius)
+
+    def inertia(self) -> np.ndarray:
+        """3x3 inertia tensor about the capsule's centre (tip / 2), in the limb body's frame (see `mass`)."""
+        m, r, h = self.mass, self.radius, self.length + self.radius
+        axis = np.asarray(self.tip, np.float64) / self.length
+        axial, across = m * r * r / 2.0, m * (3.0 * r * r + h * h) / 12.0
+        return across * np.eye(3) + (axial - across) * np.outer(axis, axis)
+
     def joint(self, kind: str) -> Joint | None:
         for j in self.joints:
             if j.kind == kind:
@@ -134,9 +150,8 @@ class Morphology:
 
     # ---- mass --------------------------------------------------------------------------------------------
     def limb_mass(self, index: int) -> float:
-        """Capsule mass as MuJoCo >= 2.1 computes it: density * (pi r^2 L + 4/3 pi r^3)."""
-        l = self.limbs[index]
-        return l.density * (np.pi * l.radius**2 * l.length + 4.0 / 3.0 * np.pi * l.radius**3)
+        """Capsule mass as MetaMorph's MuJoCo 2.0 computed it (`Limb.mass`): density * pi r^2 (L + r)."""
+        return self.limbs[index].mass
 
     @property
     def torso_mass(self) -> float:
