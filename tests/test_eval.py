@@ -80,8 +80,9 @@ def test_evaluate_run_groups_variants_and_writes_consistent_files(evaluated_runs
     for c in CHANGE_TYPES:
         mine = [r for r in rows if r["change"] == c]
         assert len(mine) == 16 and all(r["robot"] == f"{r['base']}_{c}_{r['robot'][-1]}" for r in mine)
+        # the CSV holds returns to 4 decimals (a mean near 0 makes a relative bound meaningless)
         np.testing.assert_allclose(np.mean([float(r["return"]) for r in mine]), v["per_change"][c]["mean_return"],
-                                   rtol=1e-4)
+                                   rtol=1e-6, atol=1e-4)
         assert v["per_change"][c]["episodes_total"] == 16
         assert v["per_change"][c]["fall_fraction"] == pytest.approx(np.mean([int(r["fell"]) for r in mine]))
     assert {r["base"] for r in rows} == {m for m in json.loads((d / "eval" / "train.json").read_text())["per_robot"]}

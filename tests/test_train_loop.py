@@ -48,8 +48,14 @@ def test_smoke_run_writes_everything(full_run):
     assert {"config.yaml", "metrics.csv", "learning_curve.png", "tb", "checkpoints"} <= {p.name for p in d.iterdir()}
     rows = RunDir(d).read_metrics()
     assert [int(r["iteration"]) for r in rows] == [1, 2, 3]
+    # the first minibatch after a rollout recomputes what the rollout acted with: ratio 1, KL 0. In the first
+    # iteration exactly (the tail is all resets); later the acting state and the training window both burn in over
+    # the stored tail, in two compiled programs whose float32 rounding differs on a CPU: R-MoMo's smoke run reads
+    # 3.5e-5 and 1.1e-4 in iterations 2 and 3 (8.1e-5 without fast compilation), the feed-forward models <= 5e-8,
+    # and the paper runs on GPUs <= 6e-8 (session 42)
+    assert abs(rows[0]["first_ratio"] - 1) < 1e-6 and abs(rows[0]["first_kl"]) < 1e-6
     for r in rows:
-        assert abs(r["first_ratio"] - 1) < 1e-4 and abs(r["first_kl"]) < 1e-4
+        assert abs(r["first_ratio"] - 1) < 5e-4 and abs(r["first_kl"]) < 5e-4
         assert np.isfinite(r["loss"]) and r["sps"] > 0 and r["instabilities"] == 0
     assert any(f.name.startswith("events") for f in (d / "tb").iterdir())
     assert (d / "learning_curve.png").stat().st_size > 5000
