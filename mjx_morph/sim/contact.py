@@ -40,9 +40,9 @@ colliders call too).
 
 How it is installed: MJX looks its colliders up in a private, process-wide table (`collision_driver._COLLISION_FUNC`
 of the pinned mujoco-mjx) while a step is traced. `install()`, called once when `mjx_morph.sim` is imported, puts
-the robot-robot colliders and one (plane, capsule) collider there that applies the rule of the innermost `floor(rule)` block being traced ("box"
-outside any block). An env traces its physics inside `floor(config.floor_contacts)`, so envs with different rules
-can live in one process.
+the robot-robot colliders there and one (plane, capsule) collider that applies the rule of the innermost
+`floor(rule)` block being traced ("box" outside any block). An env traces its physics inside
+`floor(config.floor_contacts)`, so envs with different rules can live in one process.
 """
 from __future__ import annotations
 

@@ -112,10 +112,9 @@ def to_mjcf(m: Morphology, *, sites: bool = False, floor: bool = False, z_offset
     return "\n".join(lines)
 
 
-def compile_model(m: Morphology, **kwargs) -> mujoco.MjModel:
-    """Compile the robot with MuJoCo, with MetaMorph's limb masses (kwargs go to `to_mjcf`; `inertials=True`
-    unless given)."""
-    return mujoco.MjModel.from_xml_string(to_mjcf(m, **{"inertials": True, **kwargs}))
+def compile_model(m: Morphology, *, inertials: bool = True, **kwargs) -> mujoco.MjModel:
+    """Compile the robot with MuJoCo, by default with MetaMorph's limb masses (kwargs go to `to_mjcf`)."""
+    return mujoco.MjModel.from_xml_string(to_mjcf(m, inertials=inertials, **kwargs))
 
 
 def metadata(m: Morphology) -> dict:

@@ -149,9 +149,6 @@ class Morphology:
         return out
 
     # ---- mass --------------------------------------------------------------------------------------------
-    def limb_mass(self, index: int) -> float:
-        """Capsule mass as MetaMorph's MuJoCo 2.0 computed it (`Limb.mass`): density * pi r^2 (L + r)."""
-        return self.limbs[index].mass
 
     @property
     def torso_mass(self) -> float:
@@ -159,4 +156,4 @@ class Morphology:
 
     @property
     def total_mass(self) -> float:
-        return self.torso_mass + sum(self.limb_mass(i) for i in range(len(self.limbs)))
+        return self.torso_mass + sum(l.mass for l in self.limbs)     # limbs as MetaMorph's MuJoCo 2.0 (Limb.mass)
