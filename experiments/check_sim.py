@@ -15,6 +15,7 @@
     python -m experiments.check_sim unimal100/train task=csr 'trace=[mvt-5506-12-4]'   # one robot step by step
     python -m experiments.check_sim unimal100/train task=csr x64=true     # the env in float64: float32's share
     python -m experiments.check_sim unimal100/train task=incline x64=true c_gap=true   # MuJoCo C with MJX's gap
+    python -m experiments.check_sim unimal100/train c_gap=true      # ft too: the robots the gap alone moves
 
 Prints per robot the worst body-position error (m) over `steps` control steps of the padded MJX robot against the
 robot alone in MuJoCo C on MetaMorph's floor, split into the padding's share (padded vs alone, both MuJoCo C) and
@@ -83,7 +84,7 @@ class CheckSimConfig:
     x64: bool = False                        # run MJX in float64 (jax.enable_x64): with unpadded_mjx, padding_mjx
                                              # is the padding's own error in MJX without float32's rounding; with
                                              # task=..., the env in float64 against MuJoCo C (float32's share)
-    c_gap: bool = False                      # task=...: MuJoCo C with MJX's robot-robot contact gap too
+    c_gap: bool = False                      # MuJoCo C with MJX's robot-robot contact gap too
                                              # (model.SELF_CONTACT_GAP): only the engines differ
     unpadded_range: str = ""                 # "lo:hi": with unpadded_mjx, only robots lo..hi-1 alone in MJX (the
                                              # rest print nan), each as in a run over all robots: slices add up
@@ -196,10 +197,8 @@ def check(a: CheckSimConfig) -> None:
         rs = dataclasses.replace(rs, name=f"{rs.name}[:{a.num_robots}]", robots=tuple(rs.robots[:a.num_robots]))
     if a.task != "ft":
         return check_task(a, rs)
-    for key, value in (("trace", a.trace), ("c_gap", a.c_gap)):
-        if value:
-            raise ValueError(f"{key}={value}: needs task=incline, csr or obstacle (ft's check runs each robot "
-                             "alone)")
+    if a.trace:
+        raise ValueError(f"trace={a.trace}: needs task=incline, csr or obstacle (ft's check runs each robot alone)")
     alone = _range(a.unpadded_range, len(rs))
     if alone is not None and not a.unpadded_mjx:
         raise ValueError(f"unpadded_range={a.unpadded_range!r} needs unpadded_mjx=true")
@@ -224,11 +223,12 @@ def check(a: CheckSimConfig) -> None:
               "the stacked model takes a while)...", flush=True)
         res = fidelity.compare(rs.robots, opts, steps=a.steps, seed=a.seed, tree=tree,
                                floor_contacts=a.floor_contacts, matmul_precision=a.matmul_precision,
-                               unpadded_mjx=a.unpadded_mjx, x64=a.x64, alone=alone)
+                               unpadded_mjx=a.unpadded_mjx, x64=a.x64, alone=alone, c_gap=a.c_gap)
         print(f"# {rs.name}: {len(res)} robots, solver iterations {it}, line search {ls}, "
               f"self-collision {'on' if a.self_collision else 'off'}, floor {a.floor_contacts}, "
               f"contact budget {budget or 'none'}, {a.steps} control steps, "
-              f"matmul precision {a.matmul_precision}, MJX in {fl} on {jax.devices()[0].platform} "
+              f"matmul precision {a.matmul_precision}, MJX in {fl} on {jax.devices()[0].platform}"
+              + (", MuJoCo C with MJX's robot-robot contact gap " if a.c_gap else " ") +
               f"({time.time() - t0:.0f} s)")
         fields = list(PADDED + (ALONE if a.unpadded_mjx else ()))
         print(" ".join([f"{'robot':40s}"] + [f"{f[:9]:>9s}" for f in fields]) + "   (m; error = padded MJX vs "

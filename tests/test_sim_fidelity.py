@@ -155,6 +155,21 @@ def test_incline_in_float64_is_mujoco_c_but_for_the_gap():
     assert jnp.zeros(()).dtype == jnp.float32          # the context ends with the call
 
 
+def test_ft_in_float64_is_mujoco_c_but_for_the_gap():
+    """`compare(x64=True, c_gap=True)`: padded MJX in float64 against the same padded robot in MuJoCo C given MJX's
+    robot-robot contact gap (MetaMorph's box floor there, its rule in MJX): the engines agree to ~1e-15 m (median
+    of the 100 train robots; at most 2.8e-7 m). Without the gap in MuJoCo C they are ~1e-6 m apart: the gap's own
+    share, which moved one train robot by 3.9e-3 m (a limb-limb contact within 1e-7 m of touching; session 43)."""
+    robots = _robots(2)
+    with_gap = fidelity.compare(robots, SolverOptions(), steps=25, x64=True, c_gap=True)
+    without = fidelity.compare(robots, SolverOptions(), steps=25, x64=True)
+    for r, w in zip(with_gap, without):
+        assert r.mjx < 1e-10, (r.name, r.mjx)
+        assert r.padding < 1e-5, (r.name, r.padding)
+        assert w.mjx > 1e3 * max(r.mjx, 1e-13), (r.name, w.mjx, r.mjx)    # the gap's share is what is left
+    assert jnp.zeros(()).dtype == jnp.float32
+
+
 def test_terrains_are_the_same_under_float64():
     """A float64 fidelity check (`x64=true`) runs on the terrain a float32 run draws from the same key: the
     generators draw int32 indices and float32 values whatever `jax.enable_x64` says."""

@@ -59,9 +59,11 @@ TOLERANCE = 1e-3
 PERTURBATION = 1e-7     # m / rad: the start-state nudge of the sensitivity column
 
 
-def alone_model(m: Morphology, options: SolverOptions, floor: str = METAMORPH_FLOOR) -> mujoco.MjModel:
+def alone_model(m: Morphology, options: SolverOptions, floor: str = METAMORPH_FLOOR,
+                self_gap: bool = False) -> mujoco.MjModel:
     """The robot alone in MuJoCo C, on MetaMorph's ft floor (or `floor`, top z = 0 in the env's frame, 1 in
-    MetaMorph's), standing where the env starts it, with the padded model's options and contact filter."""
+    MetaMorph's), standing where the env starts it, with the padded model's options and contact filter; with
+    `self_gap`, MJX's robot-robot contact gap too (`model.self_contact_margin`), which MetaMorph's model lacks."""
     z_offset = FLOOR_WORLD.start_pose(m.height)[0][2] - m.height
     xml = to_mjcf(m, floor=True, z_offset=z_offset, inertials=True)
     xml = xml.replace('<geom name="floor" type="plane" size="50 50 0.1" pos="0 0 0"/>', floor.strip())
@@ -77,6 +79,8 @@ def alone_model(m: Morphology, options: SolverOptions, floor: str = METAMORPH_FL
     mm.opt.iterations = options.iterations
     mm.opt.ls_iterations = options.ls_iterations
     mm.opt.timestep = options.timestep
+    if self_gap:
+        mm.geom_margin[:] += self_contact_margin(mm.geom_bodyid)
     return mm
 
 
@@ -124,9 +128,7 @@ def to_padded(sm, robot: int, qpos, qvel) -> tuple[np.ndarray, np.ndarray]:
 def alone_mjx_model(m: Morphology, options: SolverOptions) -> mujoco.MjModel:
     """The robot alone, for MJX: its own MJCF on the env's ft floor (a plane, top z = 0, contacts by the rule of the
     enclosing `contact.floor` block) with the stacked model's self-contact gap (`model.self_contact_margin`)."""
-    mm = alone_model(m, options, FLOOR)
-    mm.geom_margin[:] += self_contact_margin(mm.geom_bodyid)
-    return mm
+    return alone_model(m, options, FLOOR, self_gap=True)
 
 
 def _mjx_rollout(m, d, ctrls, substeps: int) -> jax.Array:
@@ -190,24 +192,26 @@ def compare(robots: Sequence[Morphology], options: SolverOptions = SolverOptions
             substeps: int = 4, seed: int = 0, tree: SharedTree | None = None,
             compiler_options: dict | None = None, floor_contacts: str = "box",
             matmul_precision: str = "highest", unpadded_mjx: bool = False, x64: bool = False,
-            alone: range | None = None) -> list[Result]:
+            alone: range | None = None, c_gap: bool = False) -> list[Result]:
     """Compare every robot (see the module docstring). `floor_contacts`: "box" (MetaMorph's box floor in MuJoCo C,
     its rule in MJX) or "plane" (a plane in MuJoCo C, MuJoCo C's plane rule in MJX); `matmul_precision`: MJX's
     (the env's `EnvConfig.matmul_precision`; it matters on GPUs with TF32); `unpadded_mjx`: also run each robot
     alone in MJX (Result.padding_mjx); `x64`: MJX in float64 (the stacked model is built inside, so it is float64
     too); `alone`: with unpadded_mjx, only the robots of these indices run alone in MJX (one compilation each; the
     others' MJX-alone fields are NaN), each with exactly the start, actions and nudges of a run over all robots, so
-    a large set can be checked in slices."""
+    a large set can be checked in slices; `c_gap`: MuJoCo C (alone and padded) with MJX's robot-robot contact gap
+    too, so that only the engines differ (a robot over the tolerance without it but not with it is the gap's: a
+    limb-limb contact within 1e-7 m of touching, decided one way by MuJoCo C and the other by the gap)."""
     if floor_contacts not in ("box", "plane"):
         raise ValueError(f"floor_contacts={floor_contacts!r}: expected 'box' or 'plane'")
     with jax.enable_x64(True) if x64 else contextlib.nullcontext():
         return _compare(tuple(robots), options, steps, substeps, seed, tree, compiler_options, floor_contacts,
                         matmul_precision, unpadded_mjx, jnp.float64 if x64 else jnp.float32,
-                        range(len(robots)) if alone is None else alone)
+                        range(len(robots)) if alone is None else alone, c_gap)
 
 
 def _compare(robots, options, steps, substeps, seed, tree, compiler_options, floor_contacts, matmul_precision,
-             unpadded_mjx, dtype, alone_robots) -> list[Result]:
+             unpadded_mjx, dtype, alone_robots, c_gap) -> list[Result]:
     c_floor = METAMORPH_FLOOR if floor_contacts == "box" else FLOOR
     np_dtype = np.dtype(dtype).type          # the MJX float, for the ulp nudge
     sm = build_stacked_model(robots, FLOOR_WORLD, options, tree=tree)
@@ -217,7 +221,7 @@ def _compare(robots, options, steps, substeps, seed, tree, compiler_options, flo
     # start states and actions, in the alone robot's layout
     starts, actions, alone = [], [], []
     for m in robots:
-        mm = alone_model(m, options, c_floor)
+        mm = alone_model(m, options, c_floor, self_gap=c_gap)
         alone.append(mm)
         q = mm.qpos0 + rng.uniform(-0.005, 0.005, mm.nq)
         v = rng.uniform(-0.005, 0.005, mm.nv)
@@ -249,7 +253,7 @@ def _compare(robots, options, steps, substeps, seed, tree, compiler_options, flo
     with contact.floor(floor_contacts), jax.default_matmul_precision(matmul_precision):
         f = jax.jit(jax.vmap(run), compiler_options=compiler_options).lower(*args).compile()
     xs = np.asarray(f(*args))
-    padded_c = padded_c_models(sm, dataclasses.replace(FLOOR_WORLD, geoms=c_floor))
+    padded_c = padded_c_models(sm, dataclasses.replace(FLOOR_WORLD, geoms=c_floor), c_gap)
     out = []
     for r, m in enumerate(robots):
         real = bodies[r, :m.num_nodes]
