@@ -1,6 +1,6 @@
 """Fidelity check of the padded, stacked MJX simulation against each robot alone in MuJoCo C.
 
-    python -m experiments.check_sim unimal100/train                 # default solver settings (5 / 8)
+    python -m experiments.check_sim unimal100/train                 # default solver settings (16 / 8)
     python -m experiments.check_sim unimal100/test mujoco_defaults=true   # MuJoCo's defaults (100 / 50) too
     python -m experiments.check_sim gen/train iterations=100 ls_iterations=50 steps=25
     python -m experiments.check_sim unimal100/train mutated=1000    # 1000 mutants of the train robots, one tree
@@ -16,6 +16,7 @@
     python -m experiments.check_sim unimal100/train task=csr x64=true     # the env in float64: float32's share
     python -m experiments.check_sim unimal100/train task=incline x64=true c_gap=true   # MuJoCo C with MJX's gap
     python -m experiments.check_sim unimal100/train c_gap=true      # ft too: the robots the gap alone moves
+    python -m experiments.check_sim unimal100/train c_defaults=true # MuJoCo C converged (MetaMorph's solver)
 
 Prints per robot the worst body-position error (m) over `steps` control steps of the padded MJX robot against the
 robot alone in MuJoCo C on MetaMorph's floor, split into the padding's share (padded vs alone, both MuJoCo C) and
@@ -86,6 +87,8 @@ class CheckSimConfig:
                                              # task=..., the env in float64 against MuJoCo C (float32's share)
     c_gap: bool = False                      # MuJoCo C with MJX's robot-robot contact gap too
                                              # (model.SELF_CONTACT_GAP): only the engines differ
+    c_defaults: bool = False                 # MuJoCo C at MuJoCo's default solver iterations (100 / 50,
+                                             # MetaMorph's) whatever MJX runs: our physics against the paper's
     unpadded_range: str = ""                 # "lo:hi": with unpadded_mjx, only robots lo..hi-1 alone in MJX (the
                                              # rest print nan), each as in a run over all robots: slices add up
     trace: List[str] = dataclasses.field(default_factory=list)   # task=...: robots (names or their beginnings)
@@ -223,12 +226,15 @@ def check(a: CheckSimConfig) -> None:
               "the stacked model takes a while)...", flush=True)
         res = fidelity.compare(rs.robots, opts, steps=a.steps, seed=a.seed, tree=tree,
                                floor_contacts=a.floor_contacts, matmul_precision=a.matmul_precision,
-                               unpadded_mjx=a.unpadded_mjx, x64=a.x64, alone=alone, c_gap=a.c_gap)
+                               unpadded_mjx=a.unpadded_mjx, x64=a.x64, alone=alone, c_gap=a.c_gap,
+                               c_defaults=a.c_defaults)
         print(f"# {rs.name}: {len(res)} robots, solver iterations {it}, line search {ls}, "
               f"self-collision {'on' if a.self_collision else 'off'}, floor {a.floor_contacts}, "
               f"contact budget {budget or 'none'}, {a.steps} control steps, "
               f"matmul precision {a.matmul_precision}, MJX in {fl} on {jax.devices()[0].platform}"
-              + (", MuJoCo C with MJX's robot-robot contact gap " if a.c_gap else " ") +
+              + (", MuJoCo C with MJX's robot-robot contact gap" if a.c_gap else "")
+              + (f", MuJoCo C at {fidelity.MUJOCO_SOLVER[0]} / {fidelity.MUJOCO_SOLVER[1]} iterations "
+                 "(MuJoCo's defaults)" if a.c_defaults else "") + " " +
               f"({time.time() - t0:.0f} s)")
         fields = list(PADDED + (ALONE if a.unpadded_mjx else ()))
         print(" ".join([f"{'robot':40s}"] + [f"{f[:9]:>9s}" for f in fields]) + "   (m; error = padded MJX vs "
@@ -269,7 +275,7 @@ def check_task(a: CheckSimConfig, rs) -> None:
     traced = _traced(a.trace, rs)
     fl = "float64" if a.x64 else "float32"
     res = fidelity.compare_task(rs.robots, a.task, opts, steps=a.steps, seed=a.seed, trace=traced, x64=a.x64,
-                                c_gap=a.c_gap,
+                                c_gap=a.c_gap, c_defaults=a.c_defaults,
                                 hfield_contacts=a.hfield_contacts,
                                 hfield_contacts_per_geom=a.hfield_contacts_per_geom,
                                 hfield_candidates=a.hfield_candidates,
@@ -280,7 +286,9 @@ def check_task(a: CheckSimConfig, rs) -> None:
                                  flat_contact_budget=a.flat_contact_budget).contact_cap(on_hfield)
     hfield = (f", height-field contacts {a.hfield_contacts}{rule_detail}" if on_hfield
               else ", MetaMorph's slab in MuJoCo C") + f", contact budget {budget or 'none'}" + (
-        ", MuJoCo C with MJX's robot-robot contact gap" if a.c_gap else "")
+        ", MuJoCo C with MJX's robot-robot contact gap" if a.c_gap else "") + (
+        f", MuJoCo C at {fidelity.MUJOCO_SOLVER[0]} / {fidelity.MUJOCO_SOLVER[1]} iterations (MuJoCo's defaults)"
+        if a.c_defaults else "")
     print(f"# {rs.name} on {a.task}: {len(res)} robots, solver iterations {a.iterations}, line search "
           f"{a.ls_iterations}, {a.steps} control steps{hfield} "
           f"({time.time() - t0:.0f} s); mjx = padded MJX in {fl} vs padded MuJoCo C (float64), max body-position "

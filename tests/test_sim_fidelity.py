@@ -155,6 +155,34 @@ def test_incline_in_float64_is_mujoco_c_but_for_the_gap():
     assert jnp.zeros(()).dtype == jnp.float32          # the context ends with the call
 
 
+def test_the_default_solver_solves_what_mujocos_defaults_solve():
+    """The env's Newton cap (`EnvConfig.iterations`) never stops the solve: each robot alone in MuJoCo C steps at it
+    exactly as at MuJoCo's defaults (100 / 50, MetaMorph's MuJoCo 2.0; `fidelity.converged`), 25 control steps of
+    N(0, 0.9) actions on MetaMorph's floor. At 5 iterations (the cap until session 43) the solve stops unconverged
+    and robots move apart by millimetres to centimetres within 0.5 s: MuJoCo C's own truncation, which a check of
+    MJX against MuJoCo C at equal settings cannot see (`check_sim SET c_defaults=true` measures it in MJX)."""
+    from mjx_morph.sim.env import EnvConfig
+    cap = EnvConfig().iterations
+    assert SolverOptions().iterations == cap                      # one default for the env and the checks
+    rng = np.random.default_rng(0)
+    truncated = []
+    for m in available_robots()[:40]:
+        base = fidelity.alone_model(m, SolverOptions(), fidelity.METAMORPH_FLOOR)
+        q = base.qpos0 + rng.uniform(-0.005, 0.005, base.nq)
+        v = rng.uniform(-0.005, 0.005, base.nv)
+        a = rng.normal(0.0, 0.9, (25, base.nu))
+        x = {}
+        for it in (5, cap, 100):
+            mm = fidelity.alone_model(m, SolverOptions(iterations=it), fidelity.METAMORPH_FLOOR)
+            if it == 100:
+                fidelity.converged([mm])
+                assert (mm.opt.iterations, mm.opt.ls_iterations) == fidelity.MUJOCO_SOLVER
+            x[it], _ = fidelity._run_c(mm, q, v, a, 4, np.arange(1, 1 + m.num_nodes))
+        assert np.abs(x[cap] - x[100]).max() < 1e-12, m.name
+        truncated.append(np.abs(x[5] - x[100]).max())
+    assert sum(e > 1e-3 for e in truncated) >= 2, sorted(truncated)[-5:]
+
+
 def test_ft_in_float64_is_mujoco_c_but_for_the_gap():
     """`compare(x64=True, c_gap=True)`: padded MJX in float64 against the same padded robot in MuJoCo C given MJX's
     robot-robot contact gap (MetaMorph's box floor there, its rule in MJX): the engines agree to ~1e-15 m (median

@@ -46,8 +46,8 @@ MuJoCo C's contacts outside any block; the rule also sizes MJX's contact arrays,
 steps inside `UnimalEnv.physics()`) and `cpu_linalg.install()` (pure-JAX Cholesky in MJX on CPU with jaxlib < 0.11).
 
 Deviations from MetaMorph / ModuMorph (each documented in its module):
-- solver: 5 Newton iterations and 8 line-search iterations instead of 100 / 50 (env.py; fidelity numbers in
-  docs/benchmarks.md); physics in float32;
+- solver: at most 16 Newton iterations and 8 line-search iterations instead of 100 / 50, the same converged solve
+  (env.py; until session 43 5 / 8, unconverged; fidelity numbers in docs/benchmarks.md); physics in float32;
 - ft / incline floors are infinite planes through the top face of MetaMorph's floor boxes, whose capsule contacts
   are those MuJoCo C makes against the boxes (contact.py; the boxes' edges are not modelled: ft's box is 200 m wide,
   incline's slab 40 m wide and 150 m long); csr / obstacle use one moving 0.1 m height-field patch

@@ -56,6 +56,7 @@ FLOOR = FLOOR_WORLD.geoms
 METAMORPH_WORLD = Plane().reference_world()     # MetaMorph's ft floor box, in the env's frame
 METAMORPH_FLOOR = METAMORPH_WORLD.geoms
 TOLERANCE = 1e-3
+MUJOCO_SOLVER = (100, 50)   # MuJoCo's default Newton and line-search iterations: MetaMorph's (MuJoCo 2.0 defaults)
 PERTURBATION = 1e-7     # m / rad: the start-state nudge of the sensitivity column
 
 
@@ -109,6 +110,13 @@ def padded_c_models(sm, world: WorldSpec = METAMORPH_WORLD, self_gap: bool = Fal
             mm.geom_margin[:] += self_contact_margin(mm.geom_bodyid)
         mm.geom_margin[inert_geoms(sm.tree, r, mm)] = INERT_MARGIN
     return out
+
+
+def converged(models: Sequence[mujoco.MjModel]) -> None:
+    """Give MuJoCo C models MuJoCo's default solver iterations (MUJOCO_SOLVER, MetaMorph's): the Newton solve then
+    stops at its tolerance (the train robots' substeps take at most 8 iterations), whatever MJX is given."""
+    for mm in models:
+        mm.opt.iterations, mm.opt.ls_iterations = MUJOCO_SOLVER
 
 
 def to_padded(sm, robot: int, qpos, qvel) -> tuple[np.ndarray, np.ndarray]:
@@ -192,7 +200,7 @@ def compare(robots: Sequence[Morphology], options: SolverOptions = SolverOptions
             substeps: int = 4, seed: int = 0, tree: SharedTree | None = None,
             compiler_options: dict | None = None, floor_contacts: str = "box",
             matmul_precision: str = "highest", unpadded_mjx: bool = False, x64: bool = False,
-            alone: range | None = None, c_gap: bool = False) -> list[Result]:
+            alone: range | None = None, c_gap: bool = False, c_defaults: bool = False) -> list[Result]:
     """Compare every robot (see the module docstring). `floor_contacts`: "box" (MetaMorph's box floor in MuJoCo C,
     its rule in MJX) or "plane" (a plane in MuJoCo C, MuJoCo C's plane rule in MJX); `matmul_precision`: MJX's
     (the env's `EnvConfig.matmul_precision`; it matters on GPUs with TF32); `unpadded_mjx`: also run each robot
@@ -201,17 +209,19 @@ def compare(robots: Sequence[Morphology], options: SolverOptions = SolverOptions
     others' MJX-alone fields are NaN), each with exactly the start, actions and nudges of a run over all robots, so
     a large set can be checked in slices; `c_gap`: MuJoCo C (alone and padded) with MJX's robot-robot contact gap
     too, so that only the engines differ (a robot over the tolerance without it but not with it is the gap's: a
-    limb-limb contact within 1e-7 m of touching, decided one way by MuJoCo C and the other by the gap)."""
+    limb-limb contact within 1e-7 m of touching, decided one way by MuJoCo C and the other by the gap);
+    `c_defaults`: MuJoCo C at MuJoCo's default solver iterations (`converged`), MetaMorph's physics, while MJX runs
+    `options`' (the env's): the whole of our physics against the paper's, the solver's truncation included."""
     if floor_contacts not in ("box", "plane"):
         raise ValueError(f"floor_contacts={floor_contacts!r}: expected 'box' or 'plane'")
     with jax.enable_x64(True) if x64 else contextlib.nullcontext():
         return _compare(tuple(robots), options, steps, substeps, seed, tree, compiler_options, floor_contacts,
                         matmul_precision, unpadded_mjx, jnp.float64 if x64 else jnp.float32,
-                        range(len(robots)) if alone is None else alone, c_gap)
+                        range(len(robots)) if alone is None else alone, c_gap, c_defaults)
 
 
 def _compare(robots, options, steps, substeps, seed, tree, compiler_options, floor_contacts, matmul_precision,
-             unpadded_mjx, dtype, alone_robots, c_gap) -> list[Result]:
+             unpadded_mjx, dtype, alone_robots, c_gap, c_defaults) -> list[Result]:
     c_floor = METAMORPH_FLOOR if floor_contacts == "box" else FLOOR
     np_dtype = np.dtype(dtype).type          # the MJX float, for the ulp nudge
     sm = build_stacked_model(robots, FLOOR_WORLD, options, tree=tree)
@@ -222,6 +232,8 @@ def _compare(robots, options, steps, substeps, seed, tree, compiler_options, flo
     starts, actions, alone = [], [], []
     for m in robots:
         mm = alone_model(m, options, c_floor, self_gap=c_gap)
+        if c_defaults:
+            converged([mm])
         alone.append(mm)
         q = mm.qpos0 + rng.uniform(-0.005, 0.005, mm.nq)
         v = rng.uniform(-0.005, 0.005, mm.nv)
@@ -254,6 +266,8 @@ def _compare(robots, options, steps, substeps, seed, tree, compiler_options, flo
         f = jax.jit(jax.vmap(run), compiler_options=compiler_options).lower(*args).compile()
     xs = np.asarray(f(*args))
     padded_c = padded_c_models(sm, dataclasses.replace(FLOOR_WORLD, geoms=c_floor), c_gap)
+    if c_defaults:
+        converged(padded_c)
     out = []
     for r, m in enumerate(robots):
         real = bodies[r, :m.num_nodes]
@@ -310,7 +324,7 @@ class TaskResult:
 
 def compare_task(robots: Sequence[Morphology], task: str, options: SolverOptions = SolverOptions(),
                  steps: int = 25, seed: int = 0, trace: Sequence[str] = (), x64: bool = False,
-                 c_gap: bool = False, **env_options) -> list[TaskResult]:
+                 c_gap: bool = False, c_defaults: bool = False, **env_options) -> list[TaskResult]:
     """The tasks beyond ft (incline, csr, obstacle): every robot in the env's padded MJX model against the same padded
     model in MuJoCo C (float64) on MetaMorph's ground (`Terrain.reference_world`: the incline's slab box, the height
     fields' patch), from the env's own reset state (a generated terrain) under N(0, 0.9) actions. On csr and
@@ -330,13 +344,15 @@ def compare_task(robots: Sequence[Morphology], task: str, options: SolverOptions
     as much as the body's speed times a substep). `x64`: the env in float64 (`jax.enable_x64`; the env and its
     model are built inside), so MJX's float32 is out of the comparison and `mjx_ulp` is float64's own spread.
     `c_gap`: MuJoCo C with MJX's robot-robot contact gap too (`model.SELF_CONTACT_GAP`, 1e-7 m; MetaMorph's model
-    has none), so that only the engines differ: in float64 the step errors then show MJX's own difference."""
+    has none), so that only the engines differ: in float64 the step errors then show MJX's own difference.
+    `c_defaults`: MuJoCo C at MuJoCo's default solver iterations (`converged`), MetaMorph's, as in `compare`."""
     with jax.enable_x64(True) if x64 else contextlib.nullcontext():
         return _compare_task(tuple(robots), task, options, steps, seed, tuple(trace),
-                             np.float64 if x64 else np.float32, c_gap, env_options)
+                             np.float64 if x64 else np.float32, c_gap, c_defaults, env_options)
 
 
-def _compare_task(robots, task, options, steps, seed, trace, dtype, c_gap, env_options) -> list[TaskResult]:
+def _compare_task(robots, task, options, steps, seed, trace, dtype, c_gap, c_defaults,
+                  env_options) -> list[TaskResult]:
     from .env import EnvConfig, UnimalEnv
     env = UnimalEnv(robots, EnvConfig(task=task, iterations=options.iterations, ls_iterations=options.ls_iterations,
                                       self_collision=options.self_collision, **env_options))
@@ -366,7 +382,10 @@ def _compare_task(robots, task, options, steps, seed, trace, dtype, c_gap, env_o
     patch = jax.jit(env.terrain.patch) if hfield else None
     tab = jax.tree_util.tree_map(np.asarray, sm.tables)
     out = []
-    for r, (m, mm) in enumerate(zip(robots, padded_c_models(sm, env.terrain.reference_world(), c_gap))):
+    references = padded_c_models(sm, env.terrain.reference_world(), c_gap)
+    if c_defaults:
+        converged(references)
+    for r, (m, mm) in enumerate(zip(robots, references)):
         ts = jax.tree_util.tree_map(lambda x: x[r], start.episode.terrain)
         first = jax.tree_util.tree_map(lambda x: np.asarray(x[r], np.float64), start.physics)
         d, ds, dk = mujoco.MjData(mm), mujoco.MjData(mm), mujoco.MjData(mm)   # the run, the restarts, kinematics

@@ -99,7 +99,7 @@ class SolverOptions:
     contact_budget      MJX keeps at most this many contacts per env, the deepest (MJX's `max_contact_points`,
                         over all contacts: they all have condim 3); None: every contact slot of every pair
     """
-    iterations: int = 5
+    iterations: int = 16            # the env's default (env.EnvConfig): the solve stops at its tolerance before it
     ls_iterations: int = 8
     self_collision: bool = True
     timestep: float = 0.005
