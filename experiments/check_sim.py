@@ -156,6 +156,13 @@ def merge_slices(paths: List[str]) -> tuple[list[str], list[list[str]]]:
     return header, merged
 
 
+def _reference(a: CheckSimConfig) -> str:
+    """What the MuJoCo C reference was given beyond its own model (`c_gap`, `c_defaults`), for a summary line."""
+    it, ls = fidelity.MUJOCO_SOLVER
+    return ((", MuJoCo C with MJX's robot-robot contact gap" if a.c_gap else "")
+            + (f", MuJoCo C at {it} / {ls} iterations (MuJoCo's defaults)" if a.c_defaults else ""))
+
+
 def print_summary(field: str, values, width: int = 8) -> None:
     """One line of a column's spread: median, 99th percentile and maximum, in metres."""
     s = fidelity.summary(list(values))
@@ -214,8 +221,8 @@ def check(a: CheckSimConfig) -> None:
         print("# " + summary.line(), flush=True)
     budget = dataclasses.replace(_ENV, flat_contact_budget=a.flat_contact_budget).contact_cap(uses_hfield=False)
     settings = [(a.iterations, a.ls_iterations)]
-    if a.mujoco_defaults and (100, 50) not in settings:
-        settings.append((100, 50))
+    if a.mujoco_defaults and fidelity.MUJOCO_SOLVER not in settings:
+        settings.append(fidelity.MUJOCO_SOLVER)
     bad = 0
     rows = []
     fl = "float64" if a.x64 else "float32"
@@ -232,10 +239,7 @@ def check(a: CheckSimConfig) -> None:
               f"self-collision {'on' if a.self_collision else 'off'}, floor {a.floor_contacts}, "
               f"contact budget {budget or 'none'}, {a.steps} control steps, "
               f"matmul precision {a.matmul_precision}, MJX in {fl} on {jax.devices()[0].platform}"
-              + (", MuJoCo C with MJX's robot-robot contact gap" if a.c_gap else "")
-              + (f", MuJoCo C at {fidelity.MUJOCO_SOLVER[0]} / {fidelity.MUJOCO_SOLVER[1]} iterations "
-                 "(MuJoCo's defaults)" if a.c_defaults else "") + " " +
-              f"({time.time() - t0:.0f} s)")
+              f"{_reference(a)} ({time.time() - t0:.0f} s)")
         fields = list(PADDED + (ALONE if a.unpadded_mjx else ()))
         print(" ".join([f"{'robot':40s}"] + [f"{f[:9]:>9s}" for f in fields]) + "   (m; error = padded MJX vs "
               "alone in MuJoCo C, padding = padded vs alone both in MuJoCo C, mjx = padded MJX vs padded MuJoCo C, "
@@ -285,10 +289,7 @@ def check_task(a: CheckSimConfig, rs) -> None:
     budget = dataclasses.replace(_ENV, contact_budget=a.contact_budget,
                                  flat_contact_budget=a.flat_contact_budget).contact_cap(on_hfield)
     hfield = (f", height-field contacts {a.hfield_contacts}{rule_detail}" if on_hfield
-              else ", MetaMorph's slab in MuJoCo C") + f", contact budget {budget or 'none'}" + (
-        ", MuJoCo C with MJX's robot-robot contact gap" if a.c_gap else "") + (
-        f", MuJoCo C at {fidelity.MUJOCO_SOLVER[0]} / {fidelity.MUJOCO_SOLVER[1]} iterations (MuJoCo's defaults)"
-        if a.c_defaults else "")
+              else ", MetaMorph's slab in MuJoCo C") + f", contact budget {budget or 'none'}" + _reference(a)
     print(f"# {rs.name} on {a.task}: {len(res)} robots, solver iterations {a.iterations}, line search "
           f"{a.ls_iterations}, {a.steps} control steps{hfield} "
           f"({time.time() - t0:.0f} s); mjx = padded MJX in {fl} vs padded MuJoCo C (float64), max body-position "

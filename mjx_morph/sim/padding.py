@@ -30,7 +30,8 @@ import math
 
 import numpy as np
 
-from ..unimal.mjcf import format_number as _num, format_vector as _vec, limb_inertial  # the writer's exact formatting
+from ..unimal.mjcf import format_number as _num, format_vector as _vec  # the writer's exact formatting
+from ..unimal.mjcf import limb_inertial        # MetaMorph's limb masses, as the robot alone compiles them
 from ..unimal.morphology import Joint, Morphology
 from .selfcontact import candidate_slot_pairs
 from .supertree import SharedTree
