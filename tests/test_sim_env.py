@@ -310,3 +310,25 @@ def test_robot_stands_on_raised_terrain(bundle):
     dz_plateau = float(st.physics.qpos[0, 2]) - plateau[2]
     dz_flat = float(st.physics.qpos[2, 2]) - flat[2]
     assert abs(dz_plateau - dz_flat) < 5e-3, (dz_plateau, dz_flat)
+
+
+def test_a_limb_framed_off_its_axis_is_refused(monkeypatch):
+    """A limb whose inertial frame is not its capsule's (a `fullinertia` lets MuJoCo pick one in the plane of the
+    two equal moments) would put a z component where ModuMorph's context bounds are both 0: a context of ~1e8 (as
+    session 44's R-MeMo run got). The env refuses it, naming the robot and the token."""
+    from mjx_morph.sim import padding
+    from mjx_morph.unimal.mjcf import format_vector
+
+    def full_inertia(l):
+        across, _, axial = l.principal_inertia()
+        axis = np.asarray(l.tip, np.float64) / l.length
+        i = across * np.eye(3) + (axial - across) * np.outer(axis, axis)
+        full = (i[0, 0], i[1, 1], i[2, 2], i[0, 1], i[0, 2], i[1, 2])
+        return (f'<inertial pos="{format_vector(np.asarray(l.tip, np.float64) / 2)}" mass="{float(l.mass)!r}" '
+                f'fullinertia="{format_vector(full)}"/>')
+
+    robots = _two_robots()
+    make_env(robots)                                            # the capsule's own frame: accepted
+    monkeypatch.setattr(padding, "limb_inertial", full_inertia)
+    with pytest.raises(ValueError, match=r"robot \S+, token \d+: body_iquat / geom_quat has a z component"):
+        make_env(robots)

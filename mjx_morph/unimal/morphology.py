@@ -72,12 +72,13 @@ class Limb:
     def mass(self) -> float:
         return self.density * np.pi * self.radius**2 * (self.length + self.radius)
 
-    def inertia(self) -> np.ndarray:
-        """3x3 inertia tensor about the capsule's centre (tip / 2), in the limb body's frame (see `mass`)."""
+    def principal_inertia(self) -> np.ndarray:
+        """(across, across, axial): the principal moments about the capsule's centre (tip / 2), in the capsule
+        geom's own frame (z along the segment; see `mass`). Two are equal, so the principal frame is not unique:
+        MuJoCo's eigen-decomposition of the full tensor picks an arbitrary one (`unimal.mjcf.limb_inertial`)."""
         m, r, h = self.mass, self.radius, self.length + self.radius
-        axis = np.asarray(self.tip, np.float64) / self.length
-        axial, across = m * r * r / 2.0, m * (3.0 * r * r + h * h) / 12.0
-        return across * np.eye(3) + (axial - across) * np.outer(axis, axis)
+        across = m * (3.0 * r * r + h * h) / 12.0
+        return np.array([across, across, m * r * r / 2.0])
 
     def joint(self, kind: str) -> Joint | None:
         for j in self.joints:
