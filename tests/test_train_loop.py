@@ -346,6 +346,41 @@ def test_progress_lines_without_the_bar(capsys):
     assert ProgressLines not in callbacks(progress=False, progress_every_min=None)
 
 
+def test_health_warnings_flag_a_run_that_starts_broken(capsys):
+    """A run whose first iterations look broken (session 44's R-MeMo: value estimates of 4.6e5 in iteration 1, one
+    minibatch of 16 applied per iteration) gets one warning line per kind and run; a healthy one none, and a run
+    resumed past its first iterations is not judged on them."""
+    from types import SimpleNamespace
+    from mjx_morph.run import HealthWarnings, RunConfig
+    trainer = SimpleNamespace(num_minibatches=16, cfg=SimpleNamespace(epochs=8))
+    loop = lambda m=0, n=1: SimpleNamespace(member=m, members=n, run=SimpleNamespace(path=Path(f"runs/s{m}")),
+                                            experiment=SimpleNamespace(trainer=trainer))
+    row = lambda it, value, mb: {"iteration": it, "value_mean": value, "minibatches": mb}
+    warnings = lambda: [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("[mjx_morph] warning")]
+
+    cb = HealthWarnings()
+    for it in range(1, 8):
+        cb.on_iteration(loop(), None, row(it, 0.5 * it, 128.0 if it == 1 else 40.0))
+    assert warnings() == []
+    cb = HealthWarnings()
+    for it in range(1, 8):
+        cb.on_iteration(loop(), None, row(it, 4.6e5, 1.0))
+    out = warnings()
+    assert len(out) == 2 and "iteration 1's value estimates average 4.6e+05" in out[0]
+    assert "at most one minibatch run in each of the first 5 iterations" in out[1]
+    cb = HealthWarnings()
+    for it in range(1, 4):                              # two seeds side by side: each named, each warned once
+        for m in range(2):
+            cb.on_iteration(loop(m, 2), None, row(it, float("nan") if m else 1.0, 16.0))
+    assert warnings() == ["[mjx_morph] warning (s1): iteration 1's value estimates average nan, where scaled returns "
+                          "keep them within a few units: is a model input out of scale (contexts, observations)?"]
+    cb = HealthWarnings()
+    for it in range(4, 8):                              # resumed at iteration 4: its first 5 are not all seen
+        cb.on_iteration(loop(), None, row(it, 1.0, 0.0))
+    assert warnings() == []
+    assert HealthWarnings in [type(c) for c in default_callbacks(RunConfig())]
+
+
 def test_metrics_csv_keeps_float32_exactly_in_few_digits(tmp_path):
     """metrics.csv writes each metric as the shortest text that reads back as the same float32 (the learner's
     metrics are float32) and whole numbers as integers: half the bytes of float64's 17 digits, nothing lost."""

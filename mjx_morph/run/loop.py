@@ -185,6 +185,38 @@ class ProgressLines(Callback):
               f"{row['sps'] * loop.members:,.0f} env steps/s{left}", flush=True)
 
 
+class HealthWarnings(Callback):
+    """One warning line per run (and kind) when its first iterations look broken rather than slow: value estimates
+    beyond `max_value` in size (the critic predicts scaled returns, O(1-10) in every run so far: a model input out
+    of scale shows here first; session 44's R-MeMo read 4.6e5 in iteration 1 from a context of 1e8), or the KL stop
+    letting at most one minibatch run in each of the run's first `stuck` iterations (the policy then hardly moves).
+    It only prints; the run goes on."""
+
+    def __init__(self, max_value: float = 100.0, stuck: int = 5):
+        self.max_value, self.stuck = float(max_value), int(stuck)
+        self.warned: set[tuple[int, str]] = set()
+        self.first: dict[int, list[float]] = {}         # per seed: minibatches applied in its first iterations
+
+    def _warn(self, loop, kind: str, text: str):
+        if (loop.member, kind) not in self.warned:
+            self.warned.add((loop.member, kind))
+            who = f" ({loop.run.path.name})" if loop.members > 1 else ""
+            print(f"[mjx_morph] warning{who}: {text}", flush=True)
+
+    def on_iteration(self, loop, state, row):
+        it, value = int(row["iteration"]), float(row.get("value_mean", 0.0))
+        if not abs(value) <= self.max_value:            # NaN too
+            self._warn(loop, "value", f"iteration {it}'s value estimates average {value:.3g}, where scaled returns "
+                       "keep them within a few units: is a model input out of scale (contexts, observations)?")
+        tr = loop.experiment.trainer
+        if it <= self.stuck and tr.num_minibatches * tr.cfg.epochs > 1:   # a run's first iterations (unseen on resume)
+            seen = self.first.setdefault(loop.member, [])
+            seen.append(float(row.get("minibatches", 0.0)))
+            if it == self.stuck and len(seen) == it and max(seen) <= 1:
+                self._warn(loop, "stuck", f"the KL stop let at most one minibatch run in each of the first {it} "
+                           "iterations: the policy hardly moves (metrics.csv: epochs_run, approx_kl, v_loss)")
+
+
 class Checkpoints(Callback):
     """An Orbax checkpoint every `every` iterations, at the invocation's last iteration, and when the invocation
     ends early (time limit, Ctrl-C)."""
@@ -250,7 +282,7 @@ def interrupts_held(note: str):
 def default_callbacks(cfg: RunConfig) -> list[Callback]:
     progress = [ProgressBar()] if cfg.progress else [ProgressLines(cfg.progress_every_min)] \
         if cfg.progress_every_min else []
-    return [MetricsLog(), *progress, Checkpoints(cfg.checkpoint_every), Summary()]
+    return [MetricsLog(), *progress, HealthWarnings(), Checkpoints(cfg.checkpoint_every), Summary()]
 
 
 def run_iteration(trainer: Trainer, state: TrainState, phase_timing: bool) -> tuple[TrainState, list[dict[str, float]]]:
