@@ -99,17 +99,18 @@ def test_compiled_limbs_have_metamorphs_masses(unimals):
 
 def test_compiled_limbs_keep_the_capsules_inertial_frame(unimals):
     """Every limb body's inertial frame is its capsule's frame, as MuJoCo frames a body of one geom (body_iquat and
-    body_ipos of the file compiled alone), so the context stays inside ModuMorph's fixed bounds: all 35 features of
-    every train and test robot in [-1, 1]. Two principal moments are equal, so a `fullinertia` lets the compiler
-    pick any frame in their plane: it did for 566 of the 807 train limbs (iquat (0.5, 0.5, 0.5, 0.5), say), a 4th
-    component whose bounds are both 0, hence contexts up to 1e8 (session 44's R-MeMo run started from values of
-    1e5 and never learnt; `sim.model` now refuses such a context)."""
+    body_ipos of the file compiled alone; every other compared field is the file's too, exactly), so the context
+    stays inside ModuMorph's fixed bounds: all 35 features of every train and test robot in [-1, 1]. Two principal
+    moments are equal, so a `fullinertia` lets the compiler pick any frame in their plane: it did for 566 of the
+    807 train limbs (iquat (0.5, 0.5, 0.5, 0.5), say), a 4th component whose bounds are both 0, hence contexts up
+    to 1e8 (session 44's R-MeMo run started from values of 1e5 and never learnt; `sim.model` now refuses such a
+    context)."""
     import sim_reference as ref
     worst, ctx = 0.0, 0.0
     for split in ("train", "test"):
         for m in load_set(f"unimal100/{split}").robots:
             mm, own = compile_model(m), mujoco.MjModel.from_xml_string(to_mjcf(m))
-            for f in ("body_iquat", "body_ipos", "geom_quat"):
+            for f in set(COMPARED) - {"body_mass", "body_inertia"}:     # all but what the <inertial> sets
                 worst = max(worst, float(np.abs(getattr(mm, f) - getattr(own, f)).max()))
             ctx = max(ctx, float(np.abs(ref.context(mm)).max()))
     assert worst <= 1e-12
