@@ -61,7 +61,7 @@ import yaml
 from omegaconf import MISSING
 
 from mjx_morph.eval.evaluate import PrepareEvaluation, evaluate_run, evaluated, resolve_set, wait_for_preparation
-from mjx_morph.run import (CONF_DIR, RunDir, compose_run_config, default_callbacks, distributed, register, to_schema,
+from mjx_morph.run import (CONF_DIR, UNHEALTHY, RunDir, compose_run_config, default_callbacks, distributed, register, to_schema,
                            train, use_compile_cache)
 from mjx_morph.sim.env import EnvConfig
 
@@ -354,10 +354,29 @@ def run_study(c: StudyConfig, argv: Optional[list[str]] = None) -> None:
         fit = evaluations_that_fit(jobs, minutes_left() - train_left_s / 60.0, jobs)
         return list(dict.fromkeys(jobs[i] for i in fit))
 
+    told: set[str] = set()
+
+    def stopped_unhealthy(members: list[StudyRun], overrides: list[str]) -> list[StudyRun]:
+        """The runs of the batch that stopped because they start broken (`stop_unhealthy`, the loop's health check):
+        they are neither trained further nor evaluated (each named once per invocation); the others go on."""
+        if not compose_run_config(overrides).stop_unhealthy:
+            return []
+        sick = [r for r in members if (Path(r.dir) / UNHEALTHY).exists()]
+        for r in sick:
+            if str(r.dir) not in told:
+                told.add(str(r.dir))
+                why = (Path(r.dir) / UNHEALTHY).read_text().strip().splitlines()[0]
+                print(f"[study] {r.dir}: stopped, it starts broken ({why}); not trained further nor evaluated "
+                      "(-- stop_unhealthy=false trains it on)", flush=True)
+        return sick
+
     todo = batches(runs, c.side_by_side)
     for i, (members, overrides) in enumerate(todo):
         print(f"[study] {i + 1}/{len(todo)}: {', '.join(str(r.dir) for r in members)}", flush=True)
         prep = None
+        sick = stopped_unhealthy(members, overrides)
+        if len(sick) == len(members):
+            continue
         if unfinished(members):
             left = minutes_left()
             if left < MIN_TRAIN_MIN:
@@ -370,10 +389,15 @@ def run_study(c: StudyConfig, argv: Optional[list[str]] = None) -> None:
                                          episodes=c.episodes, log=functools.partial(print, flush=True))
                 callbacks = [*default_callbacks(to_schema(run_cfg)), prep]
             train(run_cfg, callbacks=callbacks)
-            if unfinished(members):          # the time limit ended the training: a rerun resumes it
-                print(f"[study] not finished: {', '.join(unfinished(members))}; rerun the same command to go on",
-                      flush=True)
+            sick = stopped_unhealthy(members, overrides)
+            if len(sick) == len(members):
+                wait_for_preparation(functools.partial(print, flush=True))
+                continue
+            short = unfinished([r for r in members if r not in sick])
+            if short:                        # the time limit ended the training: a rerun resumes it
+                print(f"[study] not finished: {', '.join(short)}; rerun the same command to go on", flush=True)
                 return
+        members = [r for r in members if r not in sick]
         # with a time limit, the (set, run) evaluations that fit, the study file's sets in order (each over the
         # batch's seeds; one that does not fit gives way to shorter ones after it), counting only those not yet
         # evaluated at the run's last checkpoint. Every process takes the same decision: whether a set is done is read

@@ -170,6 +170,56 @@ def test_study_workers_split_the_runs_one_gpu_each(capsys, monkeypatch, unimals)
     assert "only 1 GPU(s) visible (CUDA_VISIBLE_DEVICES=0)" in capsys.readouterr().err
 
 
+def test_study_neither_trains_nor_evaluates_a_run_that_starts_broken(capsys, monkeypatch, tmp_path, unimals):
+    """A run the loop stopped because it starts broken (its unhealthy.txt, `stop_unhealthy`) is named, not trained
+    further and not evaluated; the study goes on with the rest (here its healthy seed, trained alone and side by
+    side), on this invocation and the next; `-- stop_unhealthy=false` trains it on."""
+    from experiments import study
+    from mjx_morph.run import UNHEALTHY
+    steps, calls = {}, []
+
+    class Steps:
+        def __init__(self, d):
+            self.name = Path(d).name
+
+        def latest_step(self):
+            return steps.get(self.name)
+
+    def fake_train(cfg, callbacks=None):
+        seeds = cfg.seeds if cfg.seeds is not None else [cfg.seed]
+        calls.append(("train", seeds, cfg.stop_unhealthy))
+        for seed in seeds:
+            d = Path(cfg.run_dir.replace("{seed}", str(seed)))
+            d.mkdir(parents=True, exist_ok=True)
+            if seed == 0 and cfg.stop_unhealthy:
+                (d / UNHEALTHY).write_text("iteration 1's value estimates average 4.6e+05, where ...\n")
+                steps[d.name] = 1
+            else:
+                steps[d.name] = 245
+    monkeypatch.setattr(study, "RunDir", Steps)
+    monkeypatch.setattr(study, "train", fake_train)
+    monkeypatch.setattr(study, "evaluated", lambda d, s, step, episodes: False)
+    monkeypatch.setattr(study, "evaluate_run", lambda d, sets, episodes: calls.append(("eval", Path(d).name)))
+    monkeypatch.setattr(study, "use_compile_cache", lambda path: None)
+    for side in ("true", "false"):
+        steps.clear(), calls.clear()
+        out_dir = tmp_path / side
+        args = ["ab_rmemo_context", "only=[no_context]", "seeds=[0,1]", f"out={out_dir}", "prepare_eval=false",
+                f"side_by_side={side}"]
+        assert study.main(args) == 0
+        trained = [("train", [0, 1], True)] if side == "true" else [("train", [0], True), ("train", [1], True)]
+        assert calls == [*trained, ("eval", "ft-rmemo-no_context-s1")], side
+        out = capsys.readouterr().out
+        assert out.count("ft-rmemo-no_context-s0: stopped, it starts broken (iteration 1's value") == 1
+        calls.clear()
+        assert study.main(args) == 0                        # the next call: nothing trained, s0 named again
+        assert calls == [("eval", "ft-rmemo-no_context-s1")]
+        assert "ft-rmemo-no_context-s0: stopped, it starts broken" in capsys.readouterr().out
+    calls.clear()
+    assert study.main([*args, "--", "stop_unhealthy=false"]) == 0
+    assert calls == [("train", [0], False), ("eval", "ft-rmemo-no_context-s0"), ("eval", "ft-rmemo-no_context-s1")]
+
+
 def test_study_time_limit_evaluates_what_fits(capsys, monkeypatch, tmp_path, unimals):
     """With time_limit_min, a finished batch gets as many (set, run) evaluations as fit (eval_minutes each), the study
     file's sets in order over the seeds, one evaluate_run per run; the rest are named and left for the rerun; with

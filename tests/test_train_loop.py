@@ -124,6 +124,29 @@ def test_ctrl_c_saves_a_checkpoint_and_a_second_one_waits_for_it(exp, tmp_path, 
     assert [int(r["iteration"]) for r in RunDir(d).read_metrics()] == [1, 2, 3]
 
 
+def test_a_run_that_starts_broken_stops_with_a_checkpoint_and_is_not_resumed(exp, tmp_path, capsys):
+    """stop_unhealthy (default true): the first health warning ends the invocation (reason "unhealthy") with a
+    checkpoint and the warning in unhealthy.txt; a rerun refuses the run, naming the file and the warning, and
+    changes nothing; stop_unhealthy=false trains it on. (A check that always warns stands in for a broken run.)"""
+    from mjx_morph.run import UNHEALTHY, HealthWarnings
+    from mjx_morph.run.loop import Checkpoints, MetricsLog
+    from mjx_morph.run.run_dir import RunDirError
+    d, seen = tmp_path / "broken", Recorder()
+    train(config(f"run_dir={d}", "checkpoint_every=100"), exp,
+          callbacks=[MetricsLog(), seen, HealthWarnings(max_value=-1.0, stop=True), Checkpoints(100)])
+    assert seen.events == [("start", 0, 3), ("iteration", 1), ("stop", "unhealthy", 1)]
+    assert RunDir(d).latest_step() == 1
+    assert "iteration 1's value estimates average" in (d / UNHEALTHY).read_text()
+    cap = capsys.readouterr()
+    assert "[mjx_morph] warning: iteration 1's value estimates" in cap.out
+    assert "stopped at iteration 1: the run starts broken" in cap.err
+    with pytest.raises(RunDirError, match=r"unhealthy.txt: this run stopped because it starts broken \(iteration 1"):
+        train(config(f"run_dir={d}"), exp)
+    assert [int(r["iteration"]) for r in RunDir(d).read_metrics()] == [1]
+    train(config(f"run_dir={d}", "stop_unhealthy=false"), exp)
+    assert [int(r["iteration"]) for r in RunDir(d).read_metrics()] == [1, 2, 3]
+
+
 def test_run_moved_in_parts_resumes_like_uninterrupted(full_run, exp, tmp_path):
     """experiments.collect checkpoint=true part_mb=...: an unfinished run leaves its machine as parts of at most
     part_mb MiB (the newest checkpoint only), is joined elsewhere with cat | tar, and resumes there exactly."""

@@ -79,6 +79,9 @@ class RunConfig:
                                         # (mjx_morph/run/distributed.py)
     num_processes: Optional[int] = None  # processes of the run (None: $MJX_MORPH_NUM_PROCESSES)
     process_id: Optional[int] = None    # this process, 0 .. num_processes - 1 (None: $MJX_MORPH_PROCESS_ID)
+    stop_unhealthy: bool = True         # end the run at its first health warning (run.loop.HealthWarnings: it
+                                        # starts broken), with a checkpoint and unhealthy.txt in its run directory,
+                                        # which a rerun refuses to resume unless stop_unhealthy=false
     phase_timing: bool = True           # rollout and update as two jitted calls, to log env steps/s per phase
     fast_compile: bool = False          # XLA CPU optimisations off: faster compiles, slower steps (tests, smoke)
     progress: bool = True               # progress bar with steps/s and ETA
@@ -122,7 +125,7 @@ IDENTITY = ("env.task", "env.context_features", "arch", "model", "robots", "robo
             "ppo.num_envs", "ppo.rollout_len", "ppo.window", "ppo.burn_in", "ppo.minibatch_size", "ppo.sampling")
 #: keys of the loop alone, which a resume may change freely; every other key changes only through allow_changes
 FREE = ("run_dir", "devices", "seeds", "coordinator", "num_processes", "process_id", "stop_after", "stop_at",
-        "time_limit_min", "checkpoint_every", "stall_min", "phase_timing", "fast_compile", "progress",
+        "time_limit_min", "checkpoint_every", "stall_min", "stop_unhealthy", "phase_timing", "fast_compile", "progress",
         "progress_every_min", "compile_cache", "allow_changes", "resume_step", "allow_outside_design_space")
 
 

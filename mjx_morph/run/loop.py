@@ -14,7 +14,7 @@ an invocation with a checkpoint too, and a Ctrl-C while the last checkpoint is w
 
 Callbacks (`Callback`): `on_start(loop)` once, `on_iteration(loop, state, row)` after every iteration with the
 metrics row, `on_stop(loop, state, reason)` once at the end, reason "done" (the invocation's last iteration ran),
-"time_limit", "interrupted" or "error". Only `run_iteration` touches the device; everything here is plain Python.
+"time_limit", "interrupted", "unhealthy" (`HealthWarnings` asked to stop) or "error". Only `run_iteration` touches the device; everything here is plain Python.
 
 Several seeds (`seeds=[0, 1, 2]`): one compiled program trains every seed (`Trainer(seeds=S)`, a vmapped train
 state), and each seed is an ordinary run with its own run directory (`run_dir` with `{seed}` in it, default
@@ -185,23 +185,36 @@ class ProgressLines(Callback):
               f"{row['sps'] * loop.members:,.0f} env steps/s{left}", flush=True)
 
 
+UNHEALTHY = "unhealthy.txt"     # in a run directory: the health warning that stopped it (stop_unhealthy=true)
+
+
 class HealthWarnings(Callback):
     """One warning line per run (and kind) when its first iterations look broken rather than slow: value estimates
     beyond `max_value` in size (the critic predicts scaled returns, O(1-10) in every run so far: a model input out
     of scale shows here first; session 44's R-MeMo read 4.6e5 in iteration 1 from a context of 1e8), or the KL stop
     letting at most one minibatch run in each of the run's first `stuck` iterations (the policy then hardly moves).
-    It only prints; the run goes on."""
+    With `stop` (the run's `stop_unhealthy`, default true) the warning goes to the run directory's unhealthy.txt as
+    well, and the loop ends the invocation once every run side by side has warned (`stop_requested`), with a
+    checkpoint: GPU time is not spent on a run that cannot learn, and a rerun refuses to resume it."""
 
-    def __init__(self, max_value: float = 100.0, stuck: int = 5):
-        self.max_value, self.stuck = float(max_value), int(stuck)
+    def __init__(self, max_value: float = 100.0, stuck: int = 5, stop: bool = False):
+        self.max_value, self.stuck, self.stop = float(max_value), int(stuck), bool(stop)
         self.warned: set[tuple[int, str]] = set()
         self.first: dict[int, list[float]] = {}         # per seed: minibatches applied in its first iterations
+        self.unhealthy: set[int] = set()                # seeds that warned
+        self.stop_requested = False
 
     def _warn(self, loop, kind: str, text: str):
         if (loop.member, kind) not in self.warned:
             self.warned.add((loop.member, kind))
             who = f" ({loop.run.path.name})" if loop.members > 1 else ""
             print(f"[mjx_morph] warning{who}: {text}", flush=True)
+            if self.stop:
+                if distributed.is_main():
+                    with (loop.run.path / UNHEALTHY).open("a") as fh:
+                        fh.write(f"{text}\n")
+                self.unhealthy.add(loop.member)
+                self.stop_requested = len(self.unhealthy) == loop.members
 
     def on_iteration(self, loop, state, row):
         it, value = int(row["iteration"]), float(row.get("value_mean", 0.0))
@@ -234,7 +247,7 @@ class Checkpoints(Callback):
         it = int(state.iteration)
         if reason == "interrupted" and distributed.several():
             return          # every process would have to save, and the others were not interrupted with this one
-        if reason in ("time_limit", "interrupted") and it > (loop.run.latest_step() or 0):
+        if reason in ("time_limit", "interrupted", "unhealthy") and it > (loop.run.latest_step() or 0):
             loop.run.save(it, state)
 
 
@@ -282,7 +295,8 @@ def interrupts_held(note: str):
 def default_callbacks(cfg: RunConfig) -> list[Callback]:
     progress = [ProgressBar()] if cfg.progress else [ProgressLines(cfg.progress_every_min)] \
         if cfg.progress_every_min else []
-    return [MetricsLog(), *progress, HealthWarnings(), Checkpoints(cfg.checkpoint_every), Summary()]
+    return [MetricsLog(), *progress, HealthWarnings(stop=cfg.stop_unhealthy), Checkpoints(cfg.checkpoint_every),
+            Summary()]
 
 
 def run_iteration(trainer: Trainer, state: TrainState, phase_timing: bool) -> tuple[TrainState, list[dict[str, float]]]:
@@ -353,6 +367,11 @@ def train(cfg: Any, experiment: Experiment | None = None, callbacks: Sequence[Ca
     if len({run.path for run in runs}) < len(runs):
         raise ValueError(f"seeds={cfg.seeds}: the seeds' run directories coincide ({runs[0].path}); put {{seed}} "
                          "in run_dir")
+    marked = [run.path / UNHEALTHY for run in runs if (run.path / UNHEALTHY).exists()]
+    if marked and cfg.stop_unhealthy:
+        why = marked[0].read_text().strip().splitlines()[0]
+        raise RunDirError(f"{marked[0]}: this run stopped because it starts broken ({why}). Find the cause and start "
+                          "a new run, or rerun with stop_unhealthy=false to train it on; nothing was changed")
     exp = experiment if experiment is not None else build(cfg)     # validates the robots, the model, the geometry
     trainer = exp.trainer
     if trainer.num_seeds != (len(members) if seeded else None):
@@ -428,6 +447,9 @@ def train(cfg: Any, experiment: Experiment | None = None, callbacks: Sequence[Ca
                 row = {"iteration": it, "env_steps": it * pc.steps_per_iter, **row}
                 for cb in callbacks:
                     cb.on_iteration(loop, state, row)
+            if any(getattr(cb, "stop_requested", False) for cb in callbacks):
+                reason = "unhealthy"
+                break
         else:
             reason = "done"
     except KeyboardInterrupt:
@@ -442,6 +464,10 @@ def train(cfg: Any, experiment: Experiment | None = None, callbacks: Sequence[Ca
                 for cb in callbacks:
                     cb.on_stop(loop, state, reason)
                 loop.run.close()
+            if reason == "unhealthy":
+                print(f"\n[mjx_morph] stopped at iteration {it}: the run starts broken (the warning above, also in "
+                      f"{', '.join(str(loop.run.path / UNHEALTHY) for loop in loops)}); checkpoint saved. Find the "
+                      "cause; stop_unhealthy=false trains on", file=sys.stderr, flush=True)
             if reason in ("time_limit", "interrupted"):
                 what = "time limit reached" if reason == "time_limit" else "interrupted"
                 saved = "checkpoint saved" if reason == "time_limit" or not distributed.several() else \
