@@ -17,8 +17,8 @@ it, and gzip gains nothing on it: 8 parts of 15 MiB) and its TensorBoard events;
 The resumed run continues exactly as if never moved.
 
 Of each run directory found under `runs` (as experiments.report finds them), ARTEFACTS are kept: the resolved config,
-its history, the devices of each invocation (devices.yaml), metrics.csv and eval/*.json (figures are rebuilt by
-experiments.report). A folder of `runs` becomes one folder of the output named as it
+its history, the devices of each invocation (devices.yaml), metrics.csv, eval/*.json and, for a run stopped because
+it started broken, unhealthy.txt (figures are rebuilt by experiments.report). A folder of `runs` becomes one folder of the output named as it
 (`runs/studies/ab_rmomo_cell/ft-rmomo-default-s0` -> `ab_rmomo_cell/ft-rmomo-default-s0`); a run directory named
 directly keeps its own name. `out` ending in .tar.gz writes an archive, else a folder. A file over
 `max_file_mb` is left out and named (the results stay committable); experiments.report rebuilds from what is kept.
@@ -41,7 +41,7 @@ from mjx_morph.run import register
 from . import cli
 
 #: what a run directory keeps, relative to it (glob patterns)
-ARTEFACTS = ("config.yaml", "config_history.yaml", "devices.yaml", "metrics.csv", "eval/*.json")
+ARTEFACTS = ("config.yaml", "config_history.yaml", "devices.yaml", "metrics.csv", "eval/*.json", "unhealthy.txt")
 
 
 @dataclasses.dataclass

@@ -667,12 +667,15 @@ def test_collect_keeps_the_small_artefacts_and_rebuilds_the_report(tmp_path):
         dict(started="2025-01-01T00:00:00+00:00", start_iteration=0, device_kind="NVIDIA H100 80GB HBM3", **entry),
         dict(started="2025-01-02T00:00:00+00:00", start_iteration=20, device_kind="NVIDIA H200", **entry),
         dict(started="2025-01-03T00:00:00+00:00", start_iteration=30, device_kind="NVIDIA H200", **entry)]))
+    (study / "ft-modumorph-s0" / "unhealthy.txt").write_text("iteration 1's value estimates average 4.6e+05\n")
     assert collect.main([f"runs=[{study}]", f"out={tmp_path / 'a.tar.gz'}"]) == 0
     with tarfile.open(tmp_path / "a.tar.gz") as tar:
         names = sorted(tar.getnames())
     assert names == sorted([f"study/ft-{a}-s0/{f}" for a in ("rmomo", "modumorph")
                             for f in ("config.yaml", "metrics.csv", "eval/train.json", "eval/test.json",
-                                      "eval/variants.json")] + ["study/ft-rmomo-s0/devices.yaml"])
+                                      "eval/variants.json")] + ["study/ft-rmomo-s0/devices.yaml",
+                                                                "study/ft-modumorph-s0/unhealthy.txt"])
+    (study / "ft-modumorph-s0" / "unhealthy.txt").unlink()
     assert collect.main([f"runs=[{study}]", f"out={tmp_path / 'results'}"]) == 0
     kept = tmp_path / "results" / "study"
     assert sorted(p.name for p in kept.iterdir()) == ["ft-modumorph-s0", "ft-rmomo-s0"]
@@ -683,6 +686,12 @@ def test_collect_keeps_the_small_artefacts_and_rebuilds_the_report(tmp_path):
     def text(dirs, out):          # without the build time
         return re.sub(r"\d{4}-\d\d-\d\d \d\d:\d\d", "", build_report(find_run_dirs(dirs), out).read_text())
     assert text([kept], tmp_path / "report") == text([study], tmp_path / "report0").replace(str(study), str(kept))
+    # a run stopped because it starts broken is in no figure or table, and the report says why
+    (kept / "ft-rmomo-s0" / "unhealthy.txt").write_text("iteration 1's value estimates average 4.6e+05\n")
+    md1 = build_report(find_run_dirs([kept]), tmp_path / "report1").read_text()
+    assert "ft-rmomo-s0`: left out: it stopped because it starts broken (iteration 1's value estimates" in md1
+    assert not any(l.startswith("| `") and "ft-rmomo-s0`" in l for l in md1.splitlines())
+    (kept / "ft-rmomo-s0" / "unhealthy.txt").unlink()
     # the runs table names each run's devices (wall hours depend on them); "?" for a run without devices.yaml
     md = (tmp_path / "report" / "report.md").read_text()
     row = lambda arch: next(l for l in md.splitlines() if l.startswith(f"| `") and f"ft-{arch}-s0`" in l)

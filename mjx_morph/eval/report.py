@@ -916,6 +916,10 @@ def build_report(run_dirs: Sequence[str | Path], out: str | Path,
     doc = Document(out)
     runs: list[Run] = []
     for d in find_run_dirs(run_dirs):
+        if (Path(d) / "unhealthy.txt").exists():      # the train loop stopped it: it starts broken (stop_unhealthy)
+            why = (Path(d) / "unhealthy.txt").read_text().strip().splitlines()[0]
+            doc.missing.append(f"`{_display(d)}`: left out: it stopped because it starts broken ({why})")
+            continue
         try:
             runs.append(read_run(d))
         except (OSError, ValueError, yaml.YAMLError) as e:
