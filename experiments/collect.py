@@ -18,10 +18,11 @@ The resumed run continues exactly as if never moved.
 
 Of each run directory found under `runs` (as experiments.report finds them), ARTEFACTS are kept: the resolved config,
 its history, the devices of each invocation (devices.yaml), metrics.csv, eval/*.json and, for a run stopped because
-it started broken, unhealthy.txt (figures are rebuilt by experiments.report). A folder of `runs` becomes one folder of the output named as it
-(`runs/studies/ab_rmomo_cell/ft-rmomo-default-s0` -> `ab_rmomo_cell/ft-rmomo-default-s0`); a run directory named
-directly keeps its own name. `out` ending in .tar.gz writes an archive, else a folder. A file over
-`max_file_mb` is left out and named (the results stay committable); experiments.report rebuilds from what is kept.
+it started broken, unhealthy.txt (figures are rebuilt by experiments.report). A folder of `runs` becomes one folder
+of the output named as it (`runs/studies/ab_rmomo_cell/ft-rmomo-default-s0` -> `ab_rmomo_cell/ft-rmomo-default-s0`);
+a run directory named directly keeps its own name. `out` ending in .tar.gz writes an archive, else a folder. A file
+over `max_file_mb` is left out and named (the results stay committable); experiments.report rebuilds from what is
+kept.
 """
 from __future__ import annotations
 

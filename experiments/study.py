@@ -61,8 +61,8 @@ import yaml
 from omegaconf import MISSING
 
 from mjx_morph.eval.evaluate import PrepareEvaluation, evaluate_run, evaluated, resolve_set, wait_for_preparation
-from mjx_morph.run import (CONF_DIR, UNHEALTHY, RunDir, compose_run_config, default_callbacks, distributed, register, to_schema,
-                           train, use_compile_cache)
+from mjx_morph.run import (CONF_DIR, UNHEALTHY, RunDir, compose_run_config, default_callbacks, distributed, register,
+                           to_schema, train, use_compile_cache)
 from mjx_morph.sim.env import EnvConfig
 
 from . import cli

@@ -14,7 +14,8 @@ an invocation with a checkpoint too, and a Ctrl-C while the last checkpoint is w
 
 Callbacks (`Callback`): `on_start(loop)` once, `on_iteration(loop, state, row)` after every iteration with the
 metrics row, `on_stop(loop, state, reason)` once at the end, reason "done" (the invocation's last iteration ran),
-"time_limit", "interrupted", "unhealthy" (`HealthWarnings` asked to stop) or "error". Only `run_iteration` touches the device; everything here is plain Python.
+"time_limit", "interrupted", "unhealthy" (`HealthWarnings` asked to stop) or "error". Only `run_iteration` touches
+the device; everything here is plain Python.
 
 Several seeds (`seeds=[0, 1, 2]`): one compiled program trains every seed (`Trainer(seeds=S)`, a vmapped train
 state), and each seed is an ordinary run with its own run directory (`run_dir` with `{seed}` in it, default

@@ -367,7 +367,7 @@ def _robot_constants(robots, tree: SharedTree, mjm) -> tuple[Robots, Tables]:
             f = static_features(mm, int(t.body_of_token[tok]), joints)
             static[r, tok] = f
             ctx[r, tok] = context_of(f, joints)
-            z = max(abs(f[22]), abs(f[26]))   # body_iquat's and geom_quat's z: ModuMorph's bounds are (0, 0)
+            z = np.abs(f[13:30][LIMB_LO == LIMB_HI]).max()   # body_iquat's and geom_quat's z: bounds (0, 0)
             if z > 1e-9:
                 raise ValueError(f"robot {m.name}, token {tok}: body_iquat / geom_quat has a z component of {z:.3g} "
                                  "where ModuMorph's context bounds (both 0) expect a capsule framed about its own "
