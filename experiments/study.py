@@ -61,8 +61,8 @@ import yaml
 from omegaconf import MISSING
 
 from mjx_morph.eval.evaluate import PrepareEvaluation, evaluate_run, evaluated, resolve_set, wait_for_preparation
-from mjx_morph.run import (CONF_DIR, UNHEALTHY, RunDir, compose_run_config, default_callbacks, distributed, register,
-                           to_schema, train, use_compile_cache)
+from mjx_morph.run import (CONF_DIR, RunDir, compose_run_config, default_callbacks, distributed, register,
+                           to_schema, train, unhealthy_reason, use_compile_cache)
 from mjx_morph.sim.env import EnvConfig
 
 from . import cli
@@ -361,14 +361,13 @@ def run_study(c: StudyConfig, argv: Optional[list[str]] = None) -> None:
         they are neither trained further nor evaluated (each named once per invocation); the others go on."""
         if not compose_run_config(overrides).stop_unhealthy:
             return []
-        sick = [r for r in members if (Path(r.dir) / UNHEALTHY).exists()]
-        for r in sick:
+        sick = [(r, unhealthy_reason(r.dir)) for r in members if unhealthy_reason(r.dir)]
+        for r, why in sick:
             if str(r.dir) not in told:
                 told.add(str(r.dir))
-                why = (Path(r.dir) / UNHEALTHY).read_text().strip().splitlines()[0]
                 print(f"[study] {r.dir}: stopped, it starts broken ({why}); not trained further nor evaluated "
                       "(-- stop_unhealthy=false trains it on)", flush=True)
-        return sick
+        return [r for r, _ in sick]
 
     todo = batches(runs, c.side_by_side)
     for i, (members, overrides) in enumerate(todo):

@@ -63,6 +63,7 @@ import numpy as np
 import yaml
 
 from ..nets import ARCHS
+from ..run import unhealthy_reason
 from ..unimal.variants import CHANGE_TYPES
 from . import plots
 from .document import Document, fmt, fmt_steps, pm, write_csv
@@ -916,8 +917,8 @@ def build_report(run_dirs: Sequence[str | Path], out: str | Path,
     doc = Document(out)
     runs: list[Run] = []
     for d in find_run_dirs(run_dirs):
-        if (Path(d) / "unhealthy.txt").exists():      # the train loop stopped it: it starts broken (stop_unhealthy)
-            why = (Path(d) / "unhealthy.txt").read_text().strip().splitlines()[0]
+        why = unhealthy_reason(d)                   # the train loop stopped it: it starts broken (stop_unhealthy)
+        if why:
             doc.missing.append(f"`{_display(d)}`: left out: it stopped because it starts broken ({why})")
             continue
         try:

@@ -16,10 +16,10 @@ from .compile_cache import DEFAULT_COMPILE_CACHE, use_compile_cache
 from .config import CONF_DIR, ConfigError, RunConfig, compose, register, compose_run_config, read_run_config, to_dict, to_schema
 from .load import LoadedRun, load_run
 from .loop import (UNHEALTHY, Callback, Checkpoints, HealthWarnings, Loop, MetricsLog, ProgressBar, ProgressLines, Summary, default_callbacks,
-                   train)
+                   train, unhealthy_reason)
 from .run_dir import RunDir, RunDirError
 
 __all__ = ["CONF_DIR", "UNHEALTHY", "DEFAULT_COMPILE_CACHE", "FAST_COMPILE", "normalize_obs", "Callback", "Checkpoints", "ConfigError", "HealthWarnings", "Experiment", "LoadedRun", "Loop", "MetricsLog",
            "ProgressBar", "ProgressLines", "RunConfig", "RunDir", "RunDirError", "Summary", "build", "compose", "compose_run_config",
            "default_callbacks", "load_run", "make_env_for", "make_model_for", "read_run_config", "register", "to_dict",
-           "to_schema", "train", "train_robots", "use_compile_cache"]
+           "to_schema", "train", "train_robots", "unhealthy_reason", "use_compile_cache"]

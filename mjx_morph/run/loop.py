@@ -189,6 +189,12 @@ class ProgressLines(Callback):
 UNHEALTHY = "unhealthy.txt"     # in a run directory: the health warning that stopped it (stop_unhealthy=true)
 
 
+def unhealthy_reason(run_dir: str | Path) -> str | None:
+    """The first health warning that stopped the run in `run_dir` (its unhealthy.txt), None for a run not stopped."""
+    f = Path(run_dir) / UNHEALTHY
+    return f.read_text().strip().splitlines()[0] if f.exists() else None
+
+
 class HealthWarnings(Callback):
     """One warning line per run (and kind) when its first iterations look broken rather than slow: value estimates
     beyond `max_value` in size (the critic predicts scaled returns, O(1-10) in every run so far: a model input out
@@ -202,7 +208,6 @@ class HealthWarnings(Callback):
         self.max_value, self.stuck, self.stop = float(max_value), int(stuck), bool(stop)
         self.warned: set[tuple[int, str]] = set()
         self.first: dict[int, list[float]] = {}         # per seed: minibatches applied in its first iterations
-        self.unhealthy: set[int] = set()                # seeds that warned
         self.stop_requested = False
 
     def _warn(self, loop, kind: str, text: str):
@@ -214,8 +219,7 @@ class HealthWarnings(Callback):
                 if distributed.is_main():
                     with (loop.run.path / UNHEALTHY).open("a") as fh:
                         fh.write(f"{text}\n")
-                self.unhealthy.add(loop.member)
-                self.stop_requested = len(self.unhealthy) == loop.members
+                self.stop_requested = len({member for member, _ in self.warned}) == loop.members
 
     def on_iteration(self, loop, state, row):
         it, value = int(row["iteration"]), float(row.get("value_mean", 0.0))
@@ -368,11 +372,11 @@ def train(cfg: Any, experiment: Experiment | None = None, callbacks: Sequence[Ca
     if len({run.path for run in runs}) < len(runs):
         raise ValueError(f"seeds={cfg.seeds}: the seeds' run directories coincide ({runs[0].path}); put {{seed}} "
                          "in run_dir")
-    marked = [run.path / UNHEALTHY for run in runs if (run.path / UNHEALTHY).exists()]
+    marked = [(run.path, unhealthy_reason(run.path)) for run in runs if unhealthy_reason(run.path)]
     if marked and cfg.stop_unhealthy:
-        why = marked[0].read_text().strip().splitlines()[0]
-        raise RunDirError(f"{marked[0]}: this run stopped because it starts broken ({why}). Find the cause and start "
-                          "a new run, or rerun with stop_unhealthy=false to train it on; nothing was changed")
+        raise RunDirError(f"{marked[0][0] / UNHEALTHY}: this run stopped because it starts broken ({marked[0][1]}). "
+                          "Find the cause and start a new run, or rerun with stop_unhealthy=false to train it on; "
+                          "nothing was changed")
     exp = experiment if experiment is not None else build(cfg)     # validates the robots, the model, the geometry
     trainer = exp.trainer
     if trainer.num_seeds != (len(members) if seeded else None):

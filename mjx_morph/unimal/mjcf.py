@@ -10,7 +10,6 @@ original MetaMorph/DERL tooling (used by `save_robot`).
 from __future__ import annotations
 
 import json
-import math
 from pathlib import Path
 from xml.sax.saxutils import quoteattr
 
@@ -37,18 +36,6 @@ def format_vector(v) -> str:
 _num, _vec = format_number, format_vector     # short names for this module's f-strings
 
 
-def z_to_quat(v) -> np.ndarray:
-    """The unit quaternion (w, x, y, z) that turns the z axis onto `v`, as MuJoCo's compiler frames a `fromto`
-    geom (with v = from - to): about the axis z x v (so its z component is always 0), by the angle between them;
-    about x by pi when v points down the z axis."""
-    v = np.asarray(v, np.float64)
-    axis = np.array([-v[1], v[0], 0.0])                 # z x v
-    s = float(np.linalg.norm(axis))
-    axis = axis / s if s >= 1e-10 else np.array([1.0, 0.0, 0.0])
-    half = 0.5 * math.atan2(s, v[2])
-    return np.concatenate([[math.cos(half)], math.sin(half) * axis])
-
-
 def limb_inertial(l) -> str:
     """The `<inertial>` element of a limb's body: MetaMorph's capsule mass and inertia (`Limb.mass`), which MuJoCo
     >= 2.1.2 no longer computes from the geom, in the geom's own frame. MuJoCo 2.0 gave a body of one geom that
@@ -57,7 +44,9 @@ def limb_inertial(l) -> str:
     two equal moments (it did for 566 of the 807 train limbs, e.g. iquat (0.5, 0.5, 0.5, 0.5): contexts up to
     1e8, and session 44's R-MeMo run never learnt)."""
     tip = np.asarray(l.tip, np.float64)
-    return (f'<inertial pos="{_vec(tip / 2.0)}" quat="{_vec(z_to_quat(-tip))}" mass="{_num(l.mass)}" '
+    quat = np.zeros(4)
+    mujoco.mju_quatZ2Vec(quat, -tip)                    # the frame MuJoCo gives the geom: z along from - to
+    return (f'<inertial pos="{_vec(tip / 2.0)}" quat="{_vec(quat)}" mass="{_num(l.mass)}" '
             f'diaginertia="{_vec(l.principal_inertia())}"/>')
 
 
