@@ -15,6 +15,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+import yaml
 
 from mjx_morph.eval.evaluate import evaluate_run, resolve_set
 from mjx_morph.eval.stats import TASK_RANGES, normalised
@@ -89,6 +90,9 @@ def test_evaluate_run_groups_variants_and_writes_consistent_files(evaluated_runs
     # the labelled set is the train robots again: same keys, same returns
     te = json.loads((d / "eval" / "test.json").read_text())
     assert te["tag"] == "test" and te["per_robot"] == json.loads((d / "eval" / "train.json").read_text())["per_robot"]
+    # each file names the physics it simulated: the train robots' is the one the run trained on, the variants' another
+    trained = yaml.safe_load((d / "devices.yaml").read_text())[-1]["model_digest"]
+    assert te["model_digest"] == trained and v["model_digest"] != trained and len(v["model_digest"]) == 16
     # train: per-robot means, normalisation and the reward trace agree with the per-episode rows
     t = json.loads((d / "eval" / "train.json").read_text())
     with (d / "eval" / "train.csv").open() as fh:

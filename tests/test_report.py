@@ -873,3 +873,24 @@ def test_every_name_of_a_figure_gets_its_own_colour():
     alone = plots.arch_colors(["metamorph"])
     assert colors["metamorph"] == alone["metamorph"] == plots.arch_colors(list(ARCHS))["metamorph"]
     assert plots.arch_colors(list(reversed(arms))) == plots.arch_colors(arms)     # arms' colours: by sorted name
+
+
+def test_the_physics_each_run_trained_on_is_shown_and_a_mix_named(tmp_path):
+    """The runs table names each run's model digest (devices.yaml); claims over runs of more than one physics (or of
+    runs with and without one recorded) say so under Missing, per architecture."""
+    a, b = "a" * 16, "b" * 16
+    recorded = {("rmemo", 0): None, ("rmemo", 1): [a], ("metamorph", 0): [a], ("metamorph", 1): [a, b]}
+    for (arch, seed), digests in recorded.items():
+        d, _ = make_run(tmp_path / "runs", f"ft-{arch}-s{seed}", arch=arch, seed=seed, metrics=False)
+        if digests:
+            (d / "devices.yaml").write_text(yaml.safe_dump(
+                [{"start_iteration": 10 * i, "device_kind": "cpu", "model_digest": x} for i, x in enumerate(digests)]))
+    md = build_report([tmp_path / "runs"], tmp_path / "out").read_text()
+    rows = {(r["arch"], r["seed"]): r["physics"] for r in _csv(tmp_path / "out" / "runs.csv")}
+    assert rows == {("rmemo", "0"): "", ("rmemo", "1"): a, ("metamorph", "0"): a, ("metamorph", "1"): f"{a} {b}"}
+    assert "| aaaaaaaa → bbbbbbbb |" in md and "| – |" in md
+    assert ("ft: the claims compare runs of more than one physics (model digest; runs per physics): metamorph: 1 "
+            "aaaaaaaa, 1 aaaaaaaa → bbbbbbbb; rmemo: 1 not recorded, 1 aaaaaaaa") in md
+    for arch, seed in recorded:                          # one physics everywhere: nothing to say
+        (tmp_path / "runs" / f"ft-{arch}-s{seed}" / "devices.yaml").write_text(yaml.safe_dump([{"model_digest": a}]))
+    assert "more than one physics" not in build_report([tmp_path / "runs"], tmp_path / "out2").read_text()

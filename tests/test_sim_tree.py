@@ -1,6 +1,8 @@
 """Shared tree, padding, stacked model and robot sampling: checks that need no MJX compilation (fast)."""
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -222,3 +224,28 @@ class _TwoCores:
     @staticmethod
     def sched_getaffinity(pid):
         return {0, 1}
+
+
+def test_model_digest_names_the_physics(monkeypatch):
+    """The digest runs record (`UnimalEnv.digest`): the same on a rebuild, another for one float32 bit of one mass,
+    for another solver cap, and for session 42's limb masses (a change of physics in the middle of a comparison that
+    nothing recorded)."""
+    rs = _robots(2)
+
+    def digest(sm):
+        return model.model_digest(model=sm.model, policy=sm.policy, tables=sm.tables, options=sm.options)
+
+    sm = build_stacked_model(rs, fidelity.FLOOR_WORLD, SolverOptions())
+    d = digest(sm)
+    assert len(d) == 16 and int(d, 16) >= 0
+    assert digest(build_stacked_model(rs, fidelity.FLOOR_WORLD, SolverOptions())) == d
+    mass = np.asarray(sm.model.body_mass).copy()
+    mass.flat[-1] = np.nextafter(mass.flat[-1], np.float32(np.inf), dtype=mass.dtype)
+    assert digest(dataclasses.replace(sm, model=sm.model.replace(body_mass=mass))) != d
+    assert digest(build_stacked_model(rs, fidelity.FLOOR_WORLD, SolverOptions(iterations=5))) != d
+
+    # session 42's change: MetaMorph's limb masses and inertias (before it, MuJoCo's own from the capsules)
+    monkeypatch.setattr(padding, "limb_inertial", lambda limb: "")
+    assert digest(build_stacked_model(rs, fidelity.FLOOR_WORLD, SolverOptions())) != d
+    with pytest.raises(TypeError, match=r"model_digest: x\['f'\] \(object\) has no digest"):
+        model.model_digest(x={"f": object()})

@@ -434,3 +434,31 @@ def test_eval_json_floats_keep_float32_precision():
     assert np.float32(out["per_robot"]["a"]) == np.float32(0.1234567891234)
     assert out["trace"][1:] == [2, True, None] and json.dumps(out["trace"][0]) == "3.3333333e-10"
     assert math.isnan(out["ci"]) and out["set"] == "unimal100/test70"
+
+
+def test_a_resume_onto_other_physics_is_refused_unless_allowed(full_run, exp, tmp_path):
+    """devices.yaml records the env's model digest per invocation; a resume whose env simulates other numbers (here:
+    the last entry's digest made another) is refused before anything is compiled or written, and goes on with
+    allow_changes=[model_digest], recorded in config_history.yaml."""
+    d = tmp_path / "physics"
+    shutil.copytree(full_run[0], d)
+    f = d / "devices.yaml"
+    entries = yaml.safe_load(f.read_text())
+    assert entries[-1]["model_digest"] == exp.env.digest and len(exp.env.digest) == 16
+    entries[-1]["model_digest"] = "0123456789abcdef"
+    f.write_text(yaml.safe_dump(entries, sort_keys=False))
+    before = _listing(d)
+    with pytest.raises(RunDirError, match=r"devices.yaml: the robots now compile to other physics than this run "
+                                          rf"trained on \(model digest 0123456789abcdef from iteration 0 on, now "
+                                          rf"{exp.env.digest}\).*allow_changes=\[model_digest\]"):
+        train(config(f"run_dir={d}"), exp)
+    assert _listing(d) == before
+    train(config(f"run_dir={d}", "allow_changes=[model_digest]"), exp)
+    history = yaml.safe_load((d / "config_history.yaml").read_text())
+    assert history[-1]["changes"] == [f"model_digest: '0123456789abcdef' -> '{exp.env.digest}'"]
+    assert yaml.safe_load(f.read_text())[-1]["model_digest"] == exp.env.digest
+    train(config(f"run_dir={d}"), exp)                      # the physics it trains on now: no change to accept
+    f.write_text("- [unclosed\n")
+    with pytest.raises(RunDirError, match=r"devices.yaml: unreadable \(ParserError at line 2\).*move it aside") as e:
+        train(config(f"run_dir={d}"), exp)
+    assert "\n" not in str(e.value)

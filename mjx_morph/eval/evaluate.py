@@ -7,7 +7,7 @@ return and normalised return with 95% confidence intervals over robots, per-robo
 variants, fall/timeout/instability counts, the reward per timestep of the first steps, and the same with the
 recurrent state held at zero for the first `zero_state_steps` steps for recurrent models, on the sets tagged in
 `zero_state_sets`: by default the test set alone, which is all the report reads it from, so that train and val cost one
-sweep, not two). `train_seed` is the run's training seed, `eval_seed` the seed of the evaluation episodes' start
+sweep, not two), and the env's `model_digest` (the physics it simulated, `UnimalEnv.digest`). `train_seed` is the run's training seed, `eval_seed` the seed of the evaluation episodes' start
 states (files written before session 10 have only `seed`, which was the evaluation seed).
 
 Set names: `train` (the robots the run trained on, `num_robots` included), `test` and `val` (the held-out robots
@@ -198,7 +198,8 @@ def evaluate_run(run_dir: str | Path, sets: Iterable[str | EvalSet] = ("train", 
         summary = {"run_dir": str(run_dir), "arch": model.arch, "task": task, "set": es.name, "tag": es.tag,
                    "checkpoint": step, "env_steps": env_steps, "episodes": episodes,
                    "train_seed": cfg.seed, "eval_seed": seed,
-                   "episode_length": sweeper.env.config.episode_length, **_summary(res, per_robot, task),
+                   "episode_length": sweeper.env.config.episode_length, "model_digest": sweeper.env.digest,
+                   **_summary(res, per_robot, task),
                    **({"per_change": per_change} if per_change else {}), "per_robot": per_robot}
         summary["reward_trace"] = res.reward.mean(axis=1).tolist()
         summary["alive_trace"] = (np.arange(res.reward.shape[0])[:, None] < res.length[None, :]).mean(axis=1).tolist()

@@ -194,26 +194,41 @@ def _display(p: Path) -> str:
 def _runs_table(doc: Document, ctx: ReportContext) -> None:
     runs = ctx.runs
     header = ["run", "task", "arch", "seed", "kind", "num_robots", "context_features", "iterations", "env_steps",
-              "device", "wall_h", "h_per_100M", "mean_sps", "final_train_return", "evals"]
+              "device", "physics", "wall_h", "h_per_100M", "mean_sps", "final_train_return", "evals"]
     rows, md = [], []
     for r in runs:
         label = r.context_label
         evals = ", ".join(sorted(r.evals)) or "none"
         device = " + ".join(r.devices) or "?"
         rows.append([_display(r.path), r.task, r.name, r.seed, r.kind, r.num_robots if r.num_robots else "all", label,
-                     r.iterations, r.final_steps, device, r.wall_hours(), r.hours_per_100m(), r.mean_sps(),
-                     r.final_train_return(), evals])
+                     r.iterations, r.final_steps, device, " ".join(r.physics), r.wall_hours(), r.hours_per_100m(),
+                     r.mean_sps(), r.final_train_return(), evals])
         md.append([f"`{_display(r.path)}`", r.task, r.name, r.seed, r.kind, r.num_robots or "all", label, r.iterations,
-                   fmt_steps(r.final_steps), device, fmt(r.wall_hours(), 2), fmt(r.hours_per_100m(), 2),
-                   fmt(r.mean_sps(), 0), fmt(r.final_train_return()), evals])
+                   fmt_steps(r.final_steps), device, _physics_label(r), fmt(r.wall_hours(), 2),
+                   fmt(r.hours_per_100m(), 2), fmt(r.mean_sps(), 0), fmt(r.final_train_return()), evals])
     doc.table("Runs", "runs", header, rows,
               ["run", "task", "arch", "seed", "kind", "robots", "context", "iterations", "env steps", "device",
-               "wall h", "wall h / 100 M steps", "mean steps/s", "final train return", "evals"], md,
+               "physics", "wall h", "wall h / 100 M steps", "mean steps/s", "final train return", "evals"], md,
               note="final train return: mean episode return of the last ~5% of iterations; wall h / 100 M steps: "
                    "sum(wall_s) / final env steps x 1e8, on the run's device (devices.yaml; ?: not recorded), so "
                    "compare it only between runs of one device; mean steps/s excludes the first iteration "
-                   "(compilation).",
+                   "(compilation); physics: the first 8 digits of the model digest the run trained on (devices.yaml: "
+                   "the stacked MJX model and the robots' constants, `UnimalEnv.digest`; –: not recorded, runs before "
+                   "session 45; a → b: resumed onto other physics).",
               lead=True)
+
+
+def _physics_label(r: Run) -> str:
+    return " → ".join(d[:8] for d in r.physics) or "–"
+
+
+def _physics_mix(runs_of: dict[str, list[Run]]) -> str:
+    """'' when every run of the groups trained on one recorded physics; else how the groups' runs spread over the
+    physics (first 8 digits of the model digest; 'not recorded' for runs before session 45)."""
+    label = {a: [_physics_label(r).replace("–", "not recorded") for r in rs] for a, rs in runs_of.items()}
+    if len({x for xs in label.values() for x in xs}) <= 1:
+        return ""
+    return "; ".join(f"{a}: " + ", ".join(f"{xs.count(x)} {x}" for x in dict.fromkeys(xs)) for a, xs in label.items())
 
 
 #: below this many seeds a learning curve shows each seed (thin) instead of a 95% CI band (t = 12.7 with 2 seeds)
@@ -513,6 +528,10 @@ def _claims(doc: Document, ctx: ReportContext) -> None:
                        _p(r.p_value), f"{r.seeds_for_power:.0f}" if math.isfinite(r.seeds_for_power) else "–",
                        r.looks])
             tested.append((t, c, label, r))
+        mix = _physics_mix({a: main[a] for a in sorted(claim_archs & set(main))})
+        if mix and sides:
+            doc.missing.append(f"{t}: the claims compare runs of more than one physics (model digest; runs per "
+                               f"physics): {mix}")
         for arch in sorted(claim_archs & set(main)):
             for seed, paths in repeated_seeds(main[arch]).items():
                 doc.missing.append(f"{t}, {arch}: {len(paths)} runs of seed {seed} ({', '.join(paths)}) count as one "

@@ -151,6 +151,18 @@ class Run:
         return float(max(steps)) if steps else float("nan")
 
     @property
+    def physics(self) -> list[str]:
+        """The distinct model digests the run trained on (devices.yaml, `UnimalEnv.digest`: the physics simulated),
+        in order; [] when not recorded (runs before session 45). More than one: resumed with
+        allow_changes=[model_digest]."""
+        out = []
+        for e in self.invocations:
+            d = e.get("model_digest") if isinstance(e, dict) else None
+            if d and str(d) not in out:
+                out.append(str(d))
+        return out
+
+    @property
     def devices(self) -> list[str]:
         """The distinct device kinds the run was trained on (e.g. ["NVIDIA H200"]), in order; [] when unknown."""
         out = []

@@ -378,6 +378,9 @@ def train(cfg: Any, experiment: Experiment | None = None, callbacks: Sequence[Ca
                           "Find the cause and start a new run, or rerun with stop_unhealthy=false to train it on; "
                           "nothing was changed")
     exp = experiment if experiment is not None else build(cfg)     # validates the robots, the model, the geometry
+    for run in runs:                    # a resume trains on the physics it trained on (before compiling anything)
+        if run.latest_step() is not None:
+            run.check_digest(exp.env.digest, tuple(cfg.allow_changes))
     trainer = exp.trainer
     if trainer.num_seeds != (len(members) if seeded else None):
         raise ValueError(f"the experiment's trainer runs seeds={trainer.num_seeds}, the config "
@@ -413,7 +416,7 @@ def train(cfg: Any, experiment: Experiment | None = None, callbacks: Sequence[Ca
             if moved:
                 print(f"[mjx_morph] checkpoints {moved} moved to {run.path / 'checkpoints.orphaned'}", flush=True)
         run.truncate_metrics(latest or 0)      # rows after the checkpoint (or of a start that never saved one)
-        run.record_invocation(latest or 0, trainer.num_devices)
+        run.record_invocation(latest or 0, trainer.num_devices, exp.env.digest)
         if latest is not None:
             print(f"[mjx_morph] resumed from {run.path / 'checkpoints' / str(latest)} (iteration {latest})",
                   flush=True)

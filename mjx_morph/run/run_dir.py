@@ -9,8 +9,9 @@
     <run_dir>/config_history.yaml  changes accepted on a resume (`allow_changes`), in order
     <run_dir>/devices.yaml         one entry per invocation (start or resume): when, from which iteration, on what
                                    devices (platform, device_kind, num_devices, processes): wall times depend on it;
-                                   and the machine's parts of JAX's compile-cache key (jax, platform_version,
-                                   topology): two machines share cached programs only where these agree
+                                   the machine's parts of JAX's compile-cache key (jax, platform_version,
+                                   topology): two machines share cached programs only where these agree; and the
+                                   env's model digest (`UnimalEnv.digest`: the physics it simulates)
 
 Opening a run directory (`RunDir(...)`) writes nothing; `create()` makes the directory and writes config.yaml once
 the caller has validated everything else, so a failed start leaves no trace.
@@ -20,7 +21,8 @@ config is compared with the saved one: keys that shape the train state (architec
 model sizes, seed: `identity`) must agree; any other training key (learning rate, epochs, total steps, simulator
 options, ...) must agree too unless the resume names it in `allow_changes`, and then the change is recorded in
 config_history.yaml and config.yaml is updated; only the loop's own keys (`free`: run_dir, stop_after, progress,
-...) may differ silently. A mismatch, an unreadable config or an unreadable checkpoint raises `RunDirError` naming
+...) may differ silently. The physics must agree too: the env's model digest against the one devices.yaml recorded
+last (`check_digest`; `allow_changes=[model_digest]` accepts a change). A mismatch, an unreadable config or an unreadable checkpoint raises `RunDirError` naming
 the file and what differs, and the directory is left as it was.
 
 Metric rows of iterations after the restored checkpoint (an interrupted run's last, unsaved iterations; all rows of
@@ -204,16 +206,57 @@ class RunDir:
             raise RunDirError(f"{self.path}: cannot write the run directory ({e.strerror or e}); "
                               "choose another run_dir") from None
 
-    def record_invocation(self, start_iteration: int, num_devices: int) -> None:
-        """Append this invocation's entry to devices.yaml (process 0; the others write nothing)."""
+    def record_invocation(self, start_iteration: int, num_devices: int, model_digest: str | None = None) -> None:
+        """Append this invocation's entry to devices.yaml (process 0; the others write nothing), with the env's
+        `model_digest` (`UnimalEnv.digest`) where given."""
         if not is_main():
             return
         dev = jax.devices()[0]
         entry = {"started": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
                  "start_iteration": int(start_iteration), "platform": dev.platform, "device_kind": dev.device_kind,
                  "num_devices": int(num_devices), "processes": jax.process_count(), **cache_key_machine()}
+        if model_digest is not None:
+            entry["model_digest"] = model_digest
         with (self.path / "devices.yaml").open("a") as fh:
             fh.write(yaml.safe_dump([entry], sort_keys=False))
+
+    def recorded_digest(self) -> tuple[str, int] | None:
+        """The model digest of the last invocation that recorded one (devices.yaml) and the iteration it started
+        at; None for a new run or one from before digests were recorded (session 45)."""
+        f = self.path / "devices.yaml"
+        if not f.is_file():
+            return None
+        try:
+            entries = yaml.safe_load(f.read_text()) or []
+            if not isinstance(entries, list):
+                raise ValueError("not a list")
+        except (OSError, ValueError, yaml.YAMLError) as e:
+            mark = getattr(e, "problem_mark", None)
+            raise RunDirError(f"{f}: unreadable ({type(e).__name__}" + (f" at line {mark.line + 1}" if mark else "")
+                              + "); it records the physics each invocation trained on: restore it, or move it aside "
+                              "to resume without that check; nothing was changed") from None
+        for e in reversed(entries):
+            if isinstance(e, dict) and e.get("model_digest"):
+                return str(e["model_digest"]), int(e.get("start_iteration", 0))
+        return None
+
+    def check_digest(self, digest: str, allowed: tuple[str, ...] = ()) -> None:
+        """On a resume: the env must simulate what the run trained on so far, i.e. give the model digest its last
+        invocation recorded, unless `allowed` (allow_changes) names `model_digest`; then the change is recorded in
+        config_history.yaml with the config's. Raises RunDirError, writing nothing."""
+        before = self.recorded_digest()
+        if before is None or before[0] == digest:
+            return
+        if "model_digest" in allowed:
+            self.changes.append(f"model_digest: {before[0]!r} -> {digest!r}")
+            return
+        raise RunDirError(
+            f"{self.path / 'devices.yaml'}: the robots now compile to other physics than this run trained on "
+            f"(model digest {before[0]} from iteration {before[1]} on, now {digest}): the code or MuJoCo changed the "
+            "models (masses, inertias, geometry, contacts, solver options or the observation's constants; see `git "
+            "log -- mjx_morph/unimal mjx_morph/sim`). A run trains on one physics: start a new run_dir, or resume "
+            "with allow_changes=[model_digest] to train on knowingly (recorded in config_history.yaml); nothing "
+            "was changed")
 
     # ---- checkpoints ---------------------------------------------------------------------------------------
     @property

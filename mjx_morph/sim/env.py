@@ -65,7 +65,7 @@ from ..layout import NUM_ACTIONS, Obs, Robots, context_mask
 from ..unimal.morphology import Morphology
 from ..unimal.sets import RobotSet, load_set
 from . import contact, hfield_contact, observation, reward, terrain
-from .model import StackedModel, Tables, build_stacked_model
+from .model import StackedModel, Tables, build_stacked_model, model_digest
 from .padding import SolverOptions
 from .tasks import EPISODE_LENGTH, FRAME_SKIP, RESET_NOISE, Task, get_task
 from .wrappers import AutoReset
@@ -211,6 +211,13 @@ class UnimalEnv:
             self._template = jax.device_put(mjx.make_data(self.sm.model_for(0), impl="jax",
                                                           device=jax.local_devices()[0]))
         self.hfield_size = terrain.grid.HFIELD_OBS_SIZE if self.task.hfield_obs else 0
+
+    @functools.cached_property
+    def digest(self) -> str:
+        """16 hex digits naming the numbers this env simulates and observes with (`model.model_digest`: the stacked
+        MJX model, the robots' policy constants as the env gives them, the tables, the solver options, MuJoCo's and
+        MJX's versions). Runs record it per invocation and refuse to resume onto another."""
+        return model_digest(model=self.sm.model, policy=self.robots, tables=self.tables, options=self.sm.options)
 
     # ---- helpers ---------------------------------------------------------------------------------------------
     @contextlib.contextmanager

@@ -26,7 +26,10 @@ It also precomputes the per-robot constants the observation and action code need
 from __future__ import annotations
 
 import dataclasses
-from typing import NamedTuple, Sequence
+import enum
+import hashlib
+from importlib import metadata
+from typing import Any, NamedTuple, Sequence
 
 import jax
 import jax.numpy as jnp
@@ -130,6 +133,51 @@ class StackedModel:
         """The MJX model of one robot (a gather along the robot axis; vmap it over envs)."""
         return jax.tree_util.tree_map(lambda x, a: x if a is None else x[robot], self.model, self.axes,
                                       is_leaf=lambda x: x is None)
+
+
+def _feed(h, name: str, x: Any) -> None:
+    """Hash `x` under `name`: arrays by dtype, shape and bytes; dataclasses, named tuples, sequences, sets and
+    mappings field by field; scalars, strings, enums and None by value."""
+    if x is None or isinstance(x, (bool, int, float, str, bytes, enum.Enum, np.generic)):
+        h.update(f"{name}={x!r};".encode())
+    elif isinstance(x, (np.ndarray, jax.Array)):
+        a = np.ascontiguousarray(np.asarray(x))
+        h.update(f"{name}:{a.dtype.str}{a.shape};".encode())
+        h.update(a.tobytes())
+    elif dataclasses.is_dataclass(x):
+        for f in dataclasses.fields(x):
+            _feed(h, f"{name}.{f.name}", getattr(x, f.name))
+    elif isinstance(x, tuple) and hasattr(x, "_fields"):
+        for k in x._fields:
+            _feed(h, f"{name}.{k}", getattr(x, k))
+    elif isinstance(x, (list, tuple)):
+        for i, v in enumerate(x):
+            _feed(h, f"{name}[{i}]", v)
+    elif isinstance(x, (set, frozenset)):
+        _feed(h, name, sorted(x))
+    elif isinstance(x, dict):
+        for k in sorted(x):
+            _feed(h, f"{name}[{k!r}]", x[k])
+    else:
+        raise TypeError(f"model_digest: {name} ({type(x).__name__}) has no digest: hash it as arrays or fields")
+
+
+def model_digest(**parts: Any) -> str:
+    """16 hex digits of SHA-256 over `parts` (each hashed exactly: a change in the last bit of a float is a change)
+    and the versions of MuJoCo and MJX. Two runs whose envs give the same digest simulated the same robots with the
+    same numbers; the code that steps them (MJX's functions, this package's contact rules, the env's config) is not
+    in it. Runs record it per invocation (`devices.yaml`) and evaluations in their JSON, so that a resume onto
+    other physics is refused and the report can tell runs of different physics apart (session 44: a code change
+    framed the limbs' inertia otherwise mid-comparison, unseen until a run failed)."""
+    h = hashlib.sha256()
+    try:
+        mjx_version = metadata.version("mujoco-mjx")
+    except metadata.PackageNotFoundError:
+        mjx_version = "?"
+    _feed(h, "versions", (mujoco.__version__, mjx_version))
+    for k in sorted(parts):
+        _feed(h, k, parts[k])
+    return h.hexdigest()[:16]
 
 
 def _fix_static(mm: mujoco.MjModel) -> None:
