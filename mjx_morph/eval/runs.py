@@ -150,27 +150,21 @@ class Run:
         steps = [e.get("env_steps") for e in self.evals.values() if isinstance(e.get("env_steps"), (int, float))]
         return float(max(steps)) if steps else float("nan")
 
+    def _invoked(self, key: str) -> list[str]:
+        """The distinct values of `key` over the run's invocations (devices.yaml), in order; [] when not recorded."""
+        vals = [str(e[key]) for e in self.invocations if isinstance(e, dict) and e.get(key)]
+        return list(dict.fromkeys(vals))
+
     @property
     def physics(self) -> list[str]:
-        """The distinct model digests the run trained on (devices.yaml, `UnimalEnv.digest`: the physics simulated),
-        in order; [] when not recorded (runs before session 45). More than one: resumed with
-        allow_changes=[model_digest]."""
-        out = []
-        for e in self.invocations:
-            d = e.get("model_digest") if isinstance(e, dict) else None
-            if d and str(d) not in out:
-                out.append(str(d))
-        return out
+        """The model digests the run trained on (`UnimalEnv.digest`: the physics simulated); [] for runs before
+        session 45. More than one: resumed with allow_changes=[model_digest]."""
+        return self._invoked("model_digest")
 
     @property
     def devices(self) -> list[str]:
-        """The distinct device kinds the run was trained on (e.g. ["NVIDIA H200"]), in order; [] when unknown."""
-        out = []
-        for e in self.invocations:
-            kind = e.get("device_kind") if isinstance(e, dict) else None
-            if kind and str(kind) not in out:
-                out.append(str(kind))
-        return out
+        """The device kinds the run was trained on (e.g. ["NVIDIA H200"]); [] when unknown."""
+        return self._invoked("device_kind")
 
     @property
     def iterations(self) -> int:
