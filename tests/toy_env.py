@@ -11,6 +11,7 @@ import jax.numpy as jnp
 
 from mjx_morph.layout import Obs, Robots
 from mjx_morph.sim import sampling
+from mjx_morph.sim.model import model_digest
 
 
 class Episode(NamedTuple):
@@ -51,6 +52,8 @@ class ToyEnv:
         ctx = jax.random.normal(jax.random.PRNGKey(7), (num_robots, 12, 35)) * nodes[..., None]
         self.robots = Robots(ctx, nodes, act)
         self.vstep = jax.vmap(self.step, in_axes=(0, 0, None))
+        # what a run records of the physics it trained on (as UnimalEnv.digest)
+        self.digest = model_digest(limits=self.limits, fall_prob=fall_prob, robots=self.robots)
 
     def reset(self, key, robot):
         k1, k2 = jax.random.split(key)
