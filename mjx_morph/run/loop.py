@@ -386,7 +386,8 @@ def train(cfg: Any, experiment: Experiment | None = None, callbacks: Sequence[Ca
         raise ValueError(f"the experiment's trainer runs seeds={trainer.num_seeds}, the config "
                          f"{len(members) if seeded else None}: build it from this config")
     pc = trainer.cfg
-    print(f"[mjx_morph] {exp.model.arch} on {cfg.env.task}: {exp.env.num_robots} robots ({exp.robot_set}), "
+    print(f"[mjx_morph] {exp.model.arch} on {cfg.env.task}: {exp.env.num_robots} robots ({exp.robot_set}; physics "
+          f"{exp.env.digest[:8]}), "
           f"{exp.model.num_params():,} parameters, {pc.num_envs} envs x {pc.rollout_len} steps = "
           f"{pc.steps_per_iter:,} steps/iteration, {trainer.num_iters} iterations on {trainer.num_devices} "
           f"{jax.devices()[0].platform} device(s)"
