@@ -877,11 +877,13 @@ def test_every_name_of_a_figure_gets_its_own_colour():
 
 def test_the_physics_each_run_trained_on_is_shown_and_a_mix_named(tmp_path):
     """The runs table names each run's model digest (devices.yaml); claims over runs of more than one physics (or of
-    runs with and without one recorded) say so under Missing, per architecture."""
+    runs with and without one recorded) say so under Missing, per architecture, and a table splits each group's
+    seeds by physics."""
     a, b = "a" * 16, "b" * 16
     recorded = {("rmemo", 0): None, ("rmemo", 1): [a], ("metamorph", 0): [a], ("metamorph", 1): [a, b]}
+    per = {}
     for (arch, seed), digests in recorded.items():
-        d, _ = make_run(tmp_path / "runs", f"ft-{arch}-s{seed}", arch=arch, seed=seed, metrics=False)
+        d, per[arch, seed] = make_run(tmp_path / "runs", f"ft-{arch}-s{seed}", arch=arch, seed=seed, metrics=False)
         if digests:
             (d / "devices.yaml").write_text(yaml.safe_dump(
                 [{"start_iteration": 10 * i, "device_kind": "cpu", "model_digest": x} for i, x in enumerate(digests)]))
@@ -891,6 +893,17 @@ def test_the_physics_each_run_trained_on_is_shown_and_a_mix_named(tmp_path):
     assert "| aaaaaaaa → bbbbbbbb |" in md and "| – |" in md
     assert ("ft: the claims compare runs of more than one physics (model digest; runs per physics): metamorph: 1 "
             "aaaaaaaa, 1 aaaaaaaa → bbbbbbbb; rmemo: 1 not recorded, 1 aaaaaaaa") in md
+    # each group's seeds split by physics, described (one run per physics here: its own returns)
+    split = {(r["arch"], r["physics"]): r for r in _csv(tmp_path / "out" / "seeds_by_physics.csv")}
+    assert set(split) == {("rmemo", ""), ("rmemo", a), ("metamorph", a), ("metamorph", f"{a} {b}")}
+    for (arch, seed), digests in recorded.items():
+        r = split[arch, " ".join(digests or [])]
+        assert r["seeds"] == str(seed) and r["n_test"] == "1" and r["n_train"] == "0"
+        assert float(r["test_return"]) == pytest.approx(np.mean(list(per[arch, seed]["test"].values())), rel=1e-5)
+        assert float(r["variants_return"]) == pytest.approx(np.mean(list(per[arch, seed]["variants"].values())),
+                                                            rel=1e-5)
+    assert "| ft | rmemo | not recorded | 0 | – |" in md
     for arch, seed in recorded:                          # one physics everywhere: nothing to say
         (tmp_path / "runs" / f"ft-{arch}-s{seed}" / "devices.yaml").write_text(yaml.safe_dump([{"model_digest": a}]))
     assert "more than one physics" not in build_report([tmp_path / "runs"], tmp_path / "out2").read_text()
+    assert not (tmp_path / "out2" / "seeds_by_physics.csv").exists()

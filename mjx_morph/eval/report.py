@@ -644,6 +644,38 @@ def _seed_spread(doc: Document, ctx: ReportContext) -> None:
                        "seeds.")
 
 
+def _seeds_by_physics(doc: Document, ctx: ReportContext) -> None:
+    """Where a task's main runs trained on more than one physics (model digests; runs before session 45 recorded
+    none), each group's seeds split by physics: their mean training return and test and variants returns. A
+    description beside the claims, which pool the physics; no test."""
+    rows, md = [], []
+    for t in ctx.tasks:
+        if len({_physics_label(r) for runs in ctx.main[t].values() for r in runs}) < 2:
+            continue
+        for arch, runs in ctx.main[t].items():
+            for label in dict.fromkeys(_physics_label(r) for r in runs):
+                mine = [r for r in runs if _physics_label(r) == label]
+                cells = [[v for v in vals if math.isfinite(v)] for vals in (
+                    [r.final_train_return() for r in mine],
+                    *([float(r.evals.get(tag, {}).get("mean_return", math.nan)) for r in mine]
+                      for tag in ("test", "variants")))]
+                means = [float(np.mean(c)) if c else math.nan for c in cells]
+                seeds = ", ".join(str(r.seed) for r in mine)
+                rows.append([t, arch, " ".join(mine[0].physics), seeds, *means, *(len(c) for c in cells)])
+                md.append([t, arch, label.replace("–", "not recorded"), seeds,
+                           *(f"{fmt(m)} ({len(c)})" if c else "–" for m, c in zip(means, cells))])
+    if rows:
+        doc.table("Seeds by physics", "seeds_by_physics",
+                  ["task", "arch", "physics", "seeds", "train_return", "test_return", "variants_return", "n_train",
+                   "n_test", "n_variants"], rows,
+                  ["task", "arch", "physics", "seeds", "train return (runs)", "test return (runs)",
+                   "variants return (runs)"], md,
+                  note="only where a task's main runs trained on more than one physics (the first 8 digits of the "
+                       "model digest in devices.yaml; not recorded: runs before session 45): each group's runs per "
+                       "physics, the mean over runs of the final train return and of the test and variants mean "
+                       "returns. A description beside the claims, which pool the physics: no test.")
+
+
 def _choice_on_val(doc: Document, ctx: ReportContext) -> None:
     """The paper's rule for a training setting chosen per model (the KL threshold, issue 15 part 3): the arm with the
     higher mean val return. For each task and architecture with two or more main groups that evaluated val (the
@@ -913,6 +945,7 @@ SECTIONS: tuple[tuple[str, Callable[[Document, ReportContext], None]], ...] = (
     ("Per-robot differences", _robot_differences),
     ("Claims", _claims),
     ("Seed spread", _seed_spread),
+    ("Seeds by physics", _seeds_by_physics),
     ("Chosen on val", _choice_on_val),
     ("Reward per timestep", _reward_per_step),
     ("Training-set size", _train_size),
