@@ -361,7 +361,7 @@ def run_study(c: StudyConfig, argv: Optional[list[str]] = None) -> None:
         they are neither trained further nor evaluated (each named once per invocation); the others go on."""
         if not compose_run_config(overrides).stop_unhealthy:
             return []
-        sick = [(r, unhealthy_reason(r.dir)) for r in members if unhealthy_reason(r.dir)]
+        sick = [(r, why) for r in members if (why := unhealthy_reason(r.dir))]
         for r, why in sick:
             if str(r.dir) not in told:
                 told.add(str(r.dir))

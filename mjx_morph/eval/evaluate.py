@@ -7,8 +7,9 @@ return and normalised return with 95% confidence intervals over robots, per-robo
 variants, fall/timeout/instability counts, the reward per timestep of the first steps, and the same with the
 recurrent state held at zero for the first `zero_state_steps` steps for recurrent models, on the sets tagged in
 `zero_state_sets`: by default the test set alone, which is all the report reads it from, so that train and val cost one
-sweep, not two), and the env's `model_digest` (the physics it simulated, `UnimalEnv.digest`). `train_seed` is the run's training seed, `eval_seed` the seed of the evaluation episodes' start
-states (files written before session 10 have only `seed`, which was the evaluation seed).
+sweep, not two), and the env's `model_digest` (the physics it simulated, `UnimalEnv.digest`). `train_seed` is the
+run's training seed, `eval_seed` the seed of the evaluation episodes' start states (files written before session 10
+have only `seed`, which was the evaluation seed).
 
 Set names: `train` (the robots the run trained on, `num_robots` included), `test` and `val` (the held-out robots
 of the run's robot family: `unimal100/test70` / `unimal100/val` for the original robots, `gen/test` for the

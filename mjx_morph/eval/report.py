@@ -213,19 +213,20 @@ def _runs_table(doc: Document, ctx: ReportContext) -> None:
                    "sum(wall_s) / final env steps x 1e8, on the run's device (devices.yaml; ?: not recorded), so "
                    "compare it only between runs of one device; mean steps/s excludes the first iteration "
                    "(compilation); physics: the first 8 digits of the model digest the run trained on (devices.yaml: "
-                   "the stacked MJX model and the robots' constants, `UnimalEnv.digest`; –: not recorded, runs before "
-                   "session 45; a → b: resumed onto other physics).",
+                   "the stacked MJX model and the robots' constants, `UnimalEnv.digest`; –: not recorded, runs "
+                   "before session 45; a → b: resumed onto other physics).",
               lead=True)
 
 
-def _physics_label(r: Run) -> str:
-    return " → ".join(d[:8] for d in r.physics) or "–"
+def _physics_label(r: Run, none: str = "–") -> str:
+    """The physics a run trained on, as its model digests' first 8 digits; `none` where it recorded none."""
+    return " → ".join(d[:8] for d in r.physics) or none
 
 
 def _physics_mix(runs_of: dict[str, list[Run]]) -> str:
     """'' when every run of the groups trained on one recorded physics; else how the groups' runs spread over the
     physics (first 8 digits of the model digest; 'not recorded' for runs before session 45)."""
-    label = {a: [_physics_label(r).replace("–", "not recorded") for r in rs] for a, rs in runs_of.items()}
+    label = {a: [_physics_label(r, "not recorded") for r in rs] for a, rs in runs_of.items()}
     if len({x for xs in label.values() for x in xs}) <= 1:
         return ""
     return "; ".join(f"{a}: " + ", ".join(f"{xs.count(x)} {x}" for x in dict.fromkeys(xs)) for a, xs in label.items())
@@ -662,7 +663,7 @@ def _seeds_by_physics(doc: Document, ctx: ReportContext) -> None:
                 means = [float(np.mean(c)) if c else math.nan for c in cells]
                 seeds = ", ".join(str(r.seed) for r in mine)
                 rows.append([t, arch, " ".join(mine[0].physics), seeds, *means, *(len(c) for c in cells)])
-                md.append([t, arch, label.replace("–", "not recorded"), seeds,
+                md.append([t, arch, _physics_label(mine[0], "not recorded"), seeds,
                            *(f"{fmt(m)} ({len(c)})" if c else "–" for m, c in zip(means, cells))])
     if rows:
         doc.table("Seeds by physics", "seeds_by_physics",

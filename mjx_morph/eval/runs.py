@@ -24,7 +24,7 @@ import numpy as np
 import yaml
 
 from ..layout import CONTEXT_GROUPS as _GROUPS
-from ..run.run_dir import flatten_config, matches_key
+from ..run.run_dir import flatten_config, matches_key, read_invocations
 
 CONTEXT_GROUPS: tuple[str, ...] = tuple(_GROUPS)     # in column order: the order of the groups in figures
 
@@ -271,15 +271,10 @@ def read_run(path: str | Path) -> Run:
             run.notes.append(f"{g.name} unreadable ({e})")
             continue
         run.evals[g.stem] = d
-    f = path / "devices.yaml"
-    if f.is_file():
-        try:
-            inv = yaml.safe_load(f.read_text()) or []
-            if not isinstance(inv, list):
-                raise ValueError("not a list")
-            run.invocations = inv
-        except (OSError, ValueError, yaml.YAMLError) as e:
-            run.notes.append(f"devices.yaml unreadable ({e})")
+    try:
+        run.invocations = read_invocations(path)
+    except ValueError as e:
+        run.notes.append(f"devices.yaml unreadable ({e})")
     return run
 
 

@@ -15,8 +15,8 @@ from .build import Experiment, build, make_env_for, make_model_for, train_robots
 from .compile_cache import DEFAULT_COMPILE_CACHE, use_compile_cache
 from .config import CONF_DIR, ConfigError, RunConfig, compose, register, compose_run_config, read_run_config, to_dict, to_schema
 from .load import LoadedRun, load_run
-from .loop import (UNHEALTHY, Callback, Checkpoints, HealthWarnings, Loop, MetricsLog, ProgressBar, ProgressLines, Summary, default_callbacks,
-                   train, unhealthy_reason)
+from .loop import (UNHEALTHY, Callback, Checkpoints, HealthWarnings, Loop, MetricsLog, ProgressBar, ProgressLines,
+                   Summary, default_callbacks, train, unhealthy_reason)
 from .run_dir import RunDir, RunDirError
 
 __all__ = ["CONF_DIR", "UNHEALTHY", "DEFAULT_COMPILE_CACHE", "FAST_COMPILE", "normalize_obs", "Callback", "Checkpoints", "ConfigError", "HealthWarnings", "Experiment", "LoadedRun", "Loop", "MetricsLog",

@@ -110,7 +110,10 @@ class StallWatchdog:
 
 
 class Callback:
-    """Hooks of the train loop; each does nothing unless overridden."""
+    """Hooks of the train loop; each does nothing unless overridden. A callback that sets `stop_requested` ends the
+    invocation after the iteration (reason "unhealthy": `HealthWarnings`)."""
+
+    stop_requested: bool = False
 
     def on_start(self, loop: Loop) -> None:
         pass
@@ -372,7 +375,7 @@ def train(cfg: Any, experiment: Experiment | None = None, callbacks: Sequence[Ca
     if len({run.path for run in runs}) < len(runs):
         raise ValueError(f"seeds={cfg.seeds}: the seeds' run directories coincide ({runs[0].path}); put {{seed}} "
                          "in run_dir")
-    marked = [(run.path, unhealthy_reason(run.path)) for run in runs if unhealthy_reason(run.path)]
+    marked = [(run.path, why) for run in runs if (why := unhealthy_reason(run.path))]
     if marked and cfg.stop_unhealthy:
         raise RunDirError(f"{marked[0][0] / UNHEALTHY}: this run stopped because it starts broken ({marked[0][1]}). "
                           "Find the cause and start a new run, or rerun with stop_unhealthy=false to train it on; "
@@ -456,7 +459,7 @@ def train(cfg: Any, experiment: Experiment | None = None, callbacks: Sequence[Ca
                 row = {"iteration": it, "env_steps": it * pc.steps_per_iter, **row}
                 for cb in callbacks:
                     cb.on_iteration(loop, state, row)
-            if any(getattr(cb, "stop_requested", False) for cb in callbacks):
+            if any(cb.stop_requested for cb in callbacks):
                 reason = "unhealthy"
                 break
         else:

@@ -22,8 +22,8 @@ model sizes, seed: `identity`) must agree; any other training key (learning rate
 options, ...) must agree too unless the resume names it in `allow_changes`, and then the change is recorded in
 config_history.yaml and config.yaml is updated; only the loop's own keys (`free`: run_dir, stop_after, progress,
 ...) may differ silently. The physics must agree too: the env's model digest against the one devices.yaml recorded
-last (`check_digest`; `allow_changes=[model_digest]` accepts a change). A mismatch, an unreadable config or an unreadable checkpoint raises `RunDirError` naming
-the file and what differs, and the directory is left as it was.
+last (`check_digest`; `allow_changes=[model_digest]` accepts a change). A mismatch, an unreadable config or an
+unreadable checkpoint raises `RunDirError` naming the file and what differs, and the directory is left as it was.
 
 Metric rows of iterations after the restored checkpoint (an interrupted run's last, unsaved iterations; all rows of
 a run that crashed before its first checkpoint) are moved to `metrics.csv.orphaned` rather than deleted and are
@@ -143,6 +143,22 @@ def cache_key_machine() -> dict:
     return out
 
 
+def read_invocations(run_dir: str | Path) -> list:
+    """The entries of `run_dir`/devices.yaml, one per invocation ([] where there is none); ValueError (one line:
+    what is wrong, and where) where it cannot be read."""
+    f = Path(run_dir) / "devices.yaml"
+    if not f.is_file():
+        return []
+    try:
+        entries = yaml.safe_load(f.read_text()) or []
+    except (OSError, yaml.YAMLError) as e:
+        mark = getattr(e, "problem_mark", None)
+        raise ValueError(type(e).__name__ + (f" at line {mark.line + 1}" if mark else "")) from None
+    if not isinstance(entries, list):
+        raise ValueError("not a list")
+    return entries
+
+
 class RunDir:
     def __init__(self, path: str | Path, config: Mapping | None = None, identity: tuple[str, ...] = (),
                  free: tuple[str, ...] = (), allow_changes: tuple[str, ...] = ()):
@@ -223,18 +239,12 @@ class RunDir:
     def recorded_digest(self) -> tuple[str, int] | None:
         """The model digest of the last invocation that recorded one (devices.yaml) and the iteration it started
         at; None for a new run or one from before digests were recorded (session 45)."""
-        f = self.path / "devices.yaml"
-        if not f.is_file():
-            return None
         try:
-            entries = yaml.safe_load(f.read_text()) or []
-            if not isinstance(entries, list):
-                raise ValueError("not a list")
-        except (OSError, ValueError, yaml.YAMLError) as e:
-            mark = getattr(e, "problem_mark", None)
-            raise RunDirError(f"{f}: unreadable ({type(e).__name__}" + (f" at line {mark.line + 1}" if mark else "")
-                              + "); it records the physics each invocation trained on: restore it, or move it aside "
-                              "to resume without that check; nothing was changed") from None
+            entries = read_invocations(self.path)
+        except ValueError as e:
+            raise RunDirError(f"{self.path / 'devices.yaml'}: unreadable ({e}); it records the physics each "
+                              "invocation trained on: restore it, or move it aside to resume without that check; "
+                              "nothing was changed") from None
         for e in reversed(entries):
             if isinstance(e, dict) and e.get("model_digest"):
                 return str(e["model_digest"]), int(e.get("start_iteration", 0))
