@@ -907,3 +907,25 @@ def test_the_physics_each_run_trained_on_is_shown_and_a_mix_named(tmp_path):
         (tmp_path / "runs" / f"ft-{arch}-s{seed}" / "devices.yaml").write_text(yaml.safe_dump([{"model_digest": a}]))
     assert "more than one physics" not in build_report([tmp_path / "runs"], tmp_path / "out2").read_text()
     assert not (tmp_path / "out2" / "seeds_by_physics.csv").exists()
+
+
+def test_a_physics_computed_afterwards_is_marked_and_pooled_with_the_recorded_one(tmp_path):
+    """A run that recorded no digest but has physics.yaml (experiments.digest record=...) shows its physics marked
+    as computed (runs table `aaaaaaaa*`, runs.csv's physics_computed) and joins the seeds of the recorded digest in
+    the seeds-by-physics table (its seed starred); a run's own record outranks a physics.yaml."""
+    a, b = "a" * 16, "b" * 16
+    dirs = {}
+    for arch, seed in (("rmemo", 0), ("rmemo", 1), ("rmemo", 2), ("metamorph", 0)):
+        dirs[arch, seed], _ = make_run(tmp_path / "runs", f"ft-{arch}-s{seed}", arch=arch, seed=seed, metrics=False)
+    for key in (("rmemo", 1), ("metamorph", 0)):
+        (dirs[key] / "devices.yaml").write_text(yaml.safe_dump([{"model_digest": a}]))
+    (dirs["rmemo", 2] / "physics.yaml").write_text(yaml.safe_dump({"model_digest": a, "code": "c0ffee", "why": "w"}))
+    (dirs["metamorph", 0] / "physics.yaml").write_text(yaml.safe_dump({"model_digest": b}))   # its record stands
+    md = build_report([tmp_path / "runs"], tmp_path / "out").read_text()
+    rows = {(r["arch"], r["seed"]): (r["physics"], r["physics_computed"]) for r in _csv(tmp_path / "out" / "runs.csv")}
+    assert rows == {("rmemo", "0"): ("", ""), ("rmemo", "1"): (a, ""), ("rmemo", "2"): ("", a),
+                    ("metamorph", "0"): (a, "")}
+    assert "| aaaaaaaa* |" in md
+    split = {(r["arch"], r["physics"]): r["seeds"] for r in _csv(tmp_path / "out" / "seeds_by_physics.csv")}
+    assert split == {("rmemo", ""): "0", ("rmemo", a): "1, 2*", ("metamorph", a): "0"}
+    assert "rmemo: 1 not recorded, 2 aaaaaaaa" in md

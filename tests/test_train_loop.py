@@ -462,3 +462,49 @@ def test_a_resume_onto_other_physics_is_refused_unless_allowed(full_run, exp, tm
     with pytest.raises(RunDirError, match=r"devices.yaml: unreadable \(ParserError at line 2\).*move it aside") as e:
         train(config(f"run_dir={d}"), exp)
     assert "\n" not in str(e.value)
+
+
+def test_the_digest_tool_checks_a_runs_physics_and_records_it_only_where_none_was(full_run, exp, tmp_path, capsys):
+    """`python -m experiments.digest`: the digest this checkout builds for a run's config against the one the run
+    recorded (exit status 1 when they differ: this checkout would not resume it); for a run that recorded none,
+    record=WHY writes it to physics.yaml with the checkout's commit and the reason, and never for a run with its own
+    record; the report then reads it as computed."""
+    from experiments import digest
+    from mjx_morph.eval.runs import read_run
+    from mjx_morph.run.run_dir import read_computed_physics, write_computed_physics
+    ours, other = tmp_path / "runs" / "ours", tmp_path / "runs" / "old"
+    shutil.copytree(full_run[0], ours, ignore=shutil.ignore_patterns("checkpoints", "tb"))
+    shutil.copytree(ours, other)
+    (other / "devices.yaml").unlink()                       # trained before runs recorded their physics
+    assert digest.main([f"runs=[{tmp_path / 'runs'}]"]) == 0
+    out = capsys.readouterr().out
+    assert f"{ours}: recorded {exp.env.digest}; this checkout {exp.env.digest}: the same physics" in out
+    assert f"{other}: recorded none; this checkout {exp.env.digest} (record=WHY writes" in out
+    assert not (other / "physics.yaml").exists() and read_run(other).physics_computed is None
+
+    why = "its code's sim: this one's (abc..HEAD)"
+    assert digest.main([f"runs=[{tmp_path / 'runs'}]", f'record="{why}"']) == 0
+    written = read_computed_physics(other)
+    assert written["model_digest"] == exp.env.digest and written["why"] == why
+    assert len(written["code"].split("+")[0]) in (40, 7)        # a commit ('unknown' outside git: 7 letters)
+    assert not (ours / "physics.yaml").exists()             # its own record stands
+    assert read_run(other).physics_computed == exp.env.digest and read_run(ours).physics_computed is None
+    assert write_computed_physics(other, exp.env.digest, "again", "x") is False     # already says so
+    with pytest.raises(RunDirError, match=r"physics.yaml: names .* this checkout computes 0123456789abcdef"):
+        write_computed_physics(other, "0123456789abcdef", "why", "x")
+    with pytest.raises(RunDirError, match=r"devices.yaml: the run recorded its physics .* Nothing was written"):
+        write_computed_physics(ours, exp.env.digest, "why", "x")
+    with pytest.raises(RunDirError, match=r"record= needs the reason"):
+        write_computed_physics(tmp_path, exp.env.digest, " ", "x")
+
+    f = ours / "devices.yaml"                   # resumed onto other physics (allow_changes) than this checkout's
+    f.write_text(yaml.safe_dump(yaml.safe_load(f.read_text()) + [{"model_digest": "0123456789abcdef"}]))
+    capsys.readouterr()
+    assert digest.main([f"runs=[{ours}]"]) == 1
+    assert f"recorded {exp.env.digest} -> 0123456789abcdef; this checkout {exp.env.digest}: OTHER PHYSICS" in \
+        capsys.readouterr().out
+    (other / "physics.yaml").write_text("model_digest: 12\n")
+    assert digest.main([f"runs=[{other}]"]) == 2             # a user's error: one line, no traceback
+    assert "physics.yaml: expected a mapping with model_digest: 16 hex digits, found 12" in capsys.readouterr().err
+    assert "physics.yaml: expected" in read_run(other).notes[-1]
+    assert digest.main([f"runs=[{tmp_path / 'nothing'}]"]) == 2

@@ -194,14 +194,15 @@ def _display(p: Path) -> str:
 def _runs_table(doc: Document, ctx: ReportContext) -> None:
     runs = ctx.runs
     header = ["run", "task", "arch", "seed", "kind", "num_robots", "context_features", "iterations", "env_steps",
-              "device", "physics", "wall_h", "h_per_100M", "mean_sps", "final_train_return", "evals"]
+              "device", "physics", "physics_computed", "wall_h", "h_per_100M", "mean_sps", "final_train_return", "evals"]
     rows, md = [], []
     for r in runs:
         label = r.context_label
         evals = ", ".join(sorted(r.evals)) or "none"
         device = " + ".join(r.devices) or "?"
         rows.append([_display(r.path), r.task, r.name, r.seed, r.kind, r.num_robots if r.num_robots else "all", label,
-                     r.iterations, r.final_steps, device, " ".join(r.physics), r.wall_hours(), r.hours_per_100m(),
+                     r.iterations, r.final_steps, device, " ".join(r.physics), r.physics_computed or "",
+                     r.wall_hours(), r.hours_per_100m(),
                      r.mean_sps(), r.final_train_return(), evals])
         md.append([f"`{_display(r.path)}`", r.task, r.name, r.seed, r.kind, r.num_robots or "all", label, r.iterations,
                    fmt_steps(r.final_steps), device, _physics_label(r), fmt(r.wall_hours(), 2),
@@ -214,19 +215,23 @@ def _runs_table(doc: Document, ctx: ReportContext) -> None:
                    "compare it only between runs of one device; mean steps/s excludes the first iteration "
                    "(compilation); physics: the first 8 digits of the model digest the run trained on (devices.yaml: "
                    "the stacked MJX model and the robots' constants, `UnimalEnv.digest`; –: not recorded, runs "
-                   "before session 45; a → b: resumed onto other physics).",
+                   "before session 45; a → b: resumed onto other physics; a*: not recorded, computed afterwards "
+                   "from the run's config by a checkout with the run's physics code, physics.yaml).",
               lead=True)
 
 
-def _physics_label(r: Run, none: str = "–") -> str:
-    """The physics a run trained on, as its model digests' first 8 digits; `none` where it recorded none."""
-    return " → ".join(d[:8] for d in r.physics) or none
+def _physics_label(r: Run, none: str = "–", mark: str = "*") -> str:
+    """The physics a run trained on, as its model digests' first 8 digits; for a run that recorded none, the digest
+    computed afterwards (physics.yaml) followed by `mark`; `none` where there is neither."""
+    if r.physics:
+        return " → ".join(d[:8] for d in r.physics)
+    return r.physics_computed[:8] + mark if r.physics_computed else none
 
 
 def _physics_mix(runs_of: dict[str, list[Run]]) -> str:
     """'' when every run of the groups trained on one recorded physics; else how the groups' runs spread over the
     physics (first 8 digits of the model digest; 'not recorded' for runs before session 45)."""
-    label = {a: [_physics_label(r, "not recorded") for r in rs] for a, rs in runs_of.items()}
+    label = {a: [_physics_label(r, "not recorded", mark="") for r in rs] for a, rs in runs_of.items()}
     if len({x for xs in label.values() for x in xs}) <= 1:
         return ""
     return "; ".join(f"{a}: " + ", ".join(f"{xs.count(x)} {x}" for x in dict.fromkeys(xs)) for a, xs in label.items())
@@ -651,19 +656,20 @@ def _seeds_by_physics(doc: Document, ctx: ReportContext) -> None:
     description beside the claims, which pool the physics; no test."""
     rows, md = [], []
     for t in ctx.tasks:
-        if len({_physics_label(r) for runs in ctx.main[t].values() for r in runs}) < 2:
+        if len({_physics_label(r, mark="") for runs in ctx.main[t].values() for r in runs}) < 2:
             continue
         for arch, runs in ctx.main[t].items():
-            for label in dict.fromkeys(_physics_label(r) for r in runs):
-                mine = [r for r in runs if _physics_label(r) == label]
+            for label in dict.fromkeys(_physics_label(r, mark="") for r in runs):
+                mine = [r for r in runs if _physics_label(r, mark="") == label]
                 cells = [[v for v in vals if math.isfinite(v)] for vals in (
                     [r.final_train_return() for r in mine],
                     *([float(r.evals.get(tag, {}).get("mean_return", math.nan)) for r in mine]
                       for tag in ("test", "variants")))]
                 means = [float(np.mean(c)) if c else math.nan for c in cells]
-                seeds = ", ".join(str(r.seed) for r in mine)
-                rows.append([t, arch, " ".join(mine[0].physics), seeds, *means, *(len(c) for c in cells)])
-                md.append([t, arch, _physics_label(mine[0], "not recorded"), seeds,
+                seeds = ", ".join(f"{r.seed}{'*' if r.physics_computed else ''}" for r in mine)
+                rows.append([t, arch, " ".join(mine[0].physics) or (mine[0].physics_computed or ""), seeds, *means,
+                             *(len(c) for c in cells)])
+                md.append([t, arch, _physics_label(mine[0], "not recorded", mark=""), seeds,
                            *(f"{fmt(m)} ({len(c)})" if c else "–" for m, c in zip(means, cells))])
     if rows:
         doc.table("Seeds by physics", "seeds_by_physics",
@@ -672,7 +678,8 @@ def _seeds_by_physics(doc: Document, ctx: ReportContext) -> None:
                   ["task", "arch", "physics", "seeds", "train return (runs)", "test return (runs)",
                    "variants return (runs)"], md,
                   note="only where a task's main runs trained on more than one physics (the first 8 digits of the "
-                       "model digest in devices.yaml; not recorded: runs before session 45): each group's runs per "
+                       "model digest in devices.yaml; not recorded: runs before session 45; seed*: a run that "
+                       "recorded none, its digest computed afterwards, physics.yaml): each group's runs per "
                        "physics, the mean over runs of the final train return and of the test and variants mean "
                        "returns. A description beside the claims, which pool the physics: no test.")
 

@@ -7,8 +7,9 @@
                                                             # runs of one task and arch (an A/B study's arms)
 
 Per run directory (read only): `config.yaml` (required), `metrics.csv` of `mjx_morph.ppo.loop`, `eval/<tag>.json`
-of `mjx_morph.eval.evaluate` and `devices.yaml` (the devices of each invocation; absent in older runs); problems with
-the optional files are kept in `Run.notes` rather than raised.
+of `mjx_morph.eval.evaluate`, `devices.yaml` (the devices of each invocation; absent in older runs) and `physics.yaml`
+(a run's physics computed afterwards, `experiments.digest`); problems with the optional files are kept in
+`Run.notes` rather than raised.
 """
 from __future__ import annotations
 
@@ -24,7 +25,7 @@ import numpy as np
 import yaml
 
 from ..layout import CONTEXT_GROUPS as _GROUPS
-from ..run.run_dir import flatten_config, matches_key, read_invocations
+from ..run.run_dir import flatten_config, matches_key, read_computed_physics, read_invocations
 
 CONTEXT_GROUPS: tuple[str, ...] = tuple(_GROUPS)     # in column order: the order of the groups in figures
 
@@ -93,6 +94,8 @@ class Run:
     evals: dict[str, dict] = field(default_factory=dict)
     notes: list[str] = field(default_factory=list)      # problems reading this run
     invocations: list[dict] = field(default_factory=list)   # devices.yaml: one entry per start or resume
+    physics_computed: str | None = None                 # physics.yaml's digest: computed afterwards, for a run that
+                                                        # recorded none (`experiments.digest`)
     kind: str = "main"                                  # main | size | context | other: see classify()
     variant: str = ""                                   # what sets this run apart from others of its task and
                                                         # arch (name_variants), e.g. "scale_after_cell=true"
@@ -275,6 +278,13 @@ def read_run(path: str | Path) -> Run:
         run.invocations = read_invocations(path)
     except ValueError as e:
         run.notes.append(f"devices.yaml unreadable ({e})")
+    try:
+        computed = read_computed_physics(path)
+    except ValueError as e:
+        run.notes.append(str(e))
+    else:
+        if computed and not run.physics:      # the run's own record stands (write_computed_physics refuses these)
+            run.physics_computed = computed["model_digest"]
     return run
 
 

@@ -12,6 +12,10 @@
                                    the machine's parts of JAX's compile-cache key (jax, platform_version,
                                    topology): two machines share cached programs only where these agree; and the
                                    env's model digest (`UnimalEnv.digest`: the physics it simulates)
+    <run_dir>/physics.yaml         only for a run that recorded no digest (trained before session 45): its physics
+                                   computed afterwards from its config by a checkout whose physics code was the
+                                   run's (`python -m experiments.digest ... record=WHY`), with the checkout's
+                                   commit and the reason; the report marks such a run's physics as computed
 
 Opening a run directory (`RunDir(...)`) writes nothing; `create()` makes the directory and writes config.yaml once
 the caller has validated everything else, so a failed start leaves no trace.
@@ -141,6 +145,63 @@ def cache_key_machine() -> dict:
     except Exception:       # a backend without a serialisable topology (JAX then hashes the device kinds alone)
         pass
     return out
+
+
+#: a run's physics computed afterwards (see the module's docstring); never written where devices.yaml records one
+COMPUTED_PHYSICS = "physics.yaml"
+
+
+def recorded_digests(run_dir: str | Path) -> list[str]:
+    """The distinct model digests `run_dir`'s invocations recorded (devices.yaml), in order; [] for none."""
+    vals = [str(e["model_digest"]) for e in read_invocations(run_dir) if isinstance(e, dict) and e.get("model_digest")]
+    return list(dict.fromkeys(vals))
+
+
+def read_computed_physics(run_dir: str | Path) -> dict | None:
+    """`run_dir`/physics.yaml (model_digest, computed, code, why), None where there is none; ValueError (one
+    line: what is wrong) where it cannot be read or names no 16-digit digest."""
+    f = Path(run_dir) / COMPUTED_PHYSICS
+    if not f.is_file():
+        return None
+    try:
+        data = yaml.safe_load(f.read_text())
+    except (OSError, yaml.YAMLError, UnicodeDecodeError) as e:
+        raise ValueError(f"{f}: unreadable ({type(e).__name__})") from None
+    digest = data.get("model_digest") if isinstance(data, dict) else None
+    if not (isinstance(digest, str) and len(digest) == 16 and all(c in "0123456789abcdef" for c in digest)):
+        raise ValueError(f"{f}: expected a mapping with model_digest: 16 hex digits, found {digest!r}")
+    return data
+
+
+def write_computed_physics(run_dir: str | Path, digest: str, why: str, code: str) -> bool:
+    """Record `digest` as the physics of `run_dir`, a run that recorded none, computed afterwards by the checkout
+    `code` (a commit) for the reason `why`. False where physics.yaml already says so; RunDirError, writing nothing,
+    where devices.yaml records a digest (the run's own record stands) or physics.yaml names another."""
+    run_dir = Path(run_dir)
+    if not why.strip():
+        raise RunDirError(f"{run_dir}: record= needs the reason this checkout's physics is the run's (e.g. the "
+                          "commits between them that touch mjx_morph/sim or mjx_morph/unimal)")
+    try:
+        recorded, before = recorded_digests(run_dir), read_computed_physics(run_dir)
+    except ValueError as e:
+        raise RunDirError(f"{run_dir}: {e}; nothing was written") from None
+    if recorded:
+        raise RunDirError(f"{run_dir / 'devices.yaml'}: the run recorded its physics ({', '.join(recorded)}) while "
+                          "it trained; a computed one is only for runs that recorded none. Nothing was written")
+    if before is not None:
+        if before["model_digest"] != digest:
+            raise RunDirError(f"{run_dir / COMPUTED_PHYSICS}: names {before['model_digest']}, this checkout "
+                              f"computes {digest}: one of the two checkouts' physics is not the run's; nothing "
+                              "was written")
+        return False
+    entry = {"model_digest": digest,
+             "computed": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+             "code": code, "why": why.strip()}
+    try:
+        _write_atomic(run_dir / COMPUTED_PHYSICS, yaml.safe_dump(entry, sort_keys=False))
+    except OSError as e:
+        raise RunDirError(f"{run_dir}: cannot write {COMPUTED_PHYSICS} ({e.strerror or e})") from None
+    return True
 
 
 def read_invocations(run_dir: str | Path) -> list:
