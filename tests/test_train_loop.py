@@ -464,6 +464,23 @@ def test_a_resume_onto_other_physics_is_refused_unless_allowed(full_run, exp, tm
     assert "\n" not in str(e.value)
 
 
+def test_expect_physics_stops_a_run_on_other_physics_before_anything_is_written(full_run, exp, tmp_path):
+    """`expect_physics=<digest prefix>` (the seeds of a comparison): a config that builds other physics stops with
+    the digest it builds, before compiling or writing; the matching prefix trains (here: resumes a finished run);
+    a value that is not 8-16 hex digits is refused by the config's check."""
+    d = tmp_path / "expect"
+    shutil.copytree(full_run[0], d)
+    before = _listing(d)
+    with pytest.raises(ValueError, match=rf"expect_physics=0123456789abcdef: this config builds other physics, "
+                                         rf"model digest {exp.env.digest} \(task ft.*nothing was written"):
+        train(config(f"run_dir={d}", "expect_physics=0123456789abcdef"), exp)
+    assert _listing(d) == before
+    train(config(f"run_dir={d}", f"expect_physics={exp.env.digest[:8]}"), exp)
+    assert len(yaml.safe_load((d / "devices.yaml").read_text())) == 2       # it ran (a resume with nothing to do)
+    for bad in ("abc", "0123456789ABCDEF", "0123456789abcdef0"):
+        with pytest.raises(ValueError, match=rf"expect_physics={bad}: expected 8 to 16 lowercase hex digits"):
+            config(f"expect_physics={bad}").check()
+
 def test_the_digest_tool_checks_a_runs_physics_and_records_it_only_where_none_was(full_run, exp, tmp_path, capsys):
     """`python -m experiments.digest`: the digest this checkout builds for a run's config against the one the run
     recorded (exit status 1 when they differ: this checkout would not resume it); for a run that recorded none,

@@ -91,6 +91,9 @@ class RunConfig:
                                         # on a resume: training keys that may differ from the saved config
                                         # (e.g. [total_steps]); recorded in config_history.yaml
     resume_step: Optional[int] = None   # resume from this checkpoint instead of the newest (later ones are set aside)
+    expect_physics: Optional[str] = None   # the model digest (its first 8 to 16 hex digits) this run must train on:
+                                        # a config or checkout that builds other physics stops before compiling
+                                        # (the seeds of a comparison; `python -m experiments.digest` prints a run's)
 
     def default_run_dir(self) -> Path:
         return Path("runs") / f"{self.env.task}-{self.arch}-s{self.seed}"
@@ -116,6 +119,10 @@ class RunConfig:
             if self.run_dir is not None and "{seed}" not in self.run_dir:
                 raise ValueError(f"run_dir={self.run_dir}: with seeds={self.seeds} each seed needs its own run "
                                  "directory; put {seed} in it (quoted for Hydra: 'run_dir=\"runs/x-s{seed}\"')")
+        if self.expect_physics is not None and not (
+                8 <= len(self.expect_physics) <= 16 and all(c in "0123456789abcdef" for c in self.expect_physics)):
+            raise ValueError(f"expect_physics={self.expect_physics}: expected 8 to 16 lowercase hex digits of a model "
+                             "digest (devices.yaml's model_digest, or `python -m experiments.digest runs=[...]`)")
         self.ppo.check_values()
         check_precision(self.precision)
 
@@ -126,7 +133,8 @@ IDENTITY = ("env.task", "env.context_features", "arch", "model", "robots", "robo
 #: keys of the loop alone, which a resume may change freely; every other key changes only through allow_changes
 FREE = ("run_dir", "devices", "seeds", "coordinator", "num_processes", "process_id", "stop_after", "stop_at",
         "time_limit_min", "checkpoint_every", "stall_min", "stop_unhealthy", "phase_timing", "fast_compile",
-        "progress", "progress_every_min", "compile_cache", "allow_changes", "resume_step", "allow_outside_design_space")
+        "progress", "progress_every_min", "compile_cache", "allow_changes", "resume_step", "allow_outside_design_space",
+        "expect_physics")
 
 
 class ConfigError(ValueError):

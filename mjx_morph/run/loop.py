@@ -381,6 +381,11 @@ def train(cfg: Any, experiment: Experiment | None = None, callbacks: Sequence[Ca
                           "Find the cause and start a new run, or rerun with stop_unhealthy=false to train it on; "
                           "nothing was changed")
     exp = experiment if experiment is not None else build(cfg)     # validates the robots, the model, the geometry
+    if cfg.expect_physics and not exp.env.digest.startswith(cfg.expect_physics):
+        raise ValueError(f"expect_physics={cfg.expect_physics}: this config builds other physics, model digest "
+                         f"{exp.env.digest} (task {cfg.env.task}, robots {exp.robot_set}, env.iterations="
+                         f"{cfg.env.iterations}): the robots, the simulator options or the code's physics (git log -- "
+                         "mjx_morph/sim mjx_morph/unimal) differ from the runs it should match; nothing was written")
     for run in runs:                    # a resume trains on the physics it trained on (before compiling anything)
         if run.latest_step() is not None:
             run.check_digest(exp.env.digest, tuple(cfg.allow_changes))
