@@ -132,6 +132,20 @@ def test_ab_studies_compose(capsys, unimals, name, archs, runs):
     assert all("stop_at=245" in ln for ln in lines) == (name != "kl_threshold")
 
 
+def test_the_solver_study_differs_from_the_paper_runs_in_the_solver_cap_alone(capsys, unimals):
+    """ab_solver (plan item 2): its two arms are the paper study's runs (100 M schedule stopped at 220, as its seeds
+    7-8) with the Newton solver capped at 5 (the comparison's seeds) or converged at 16, and nothing else."""
+    from experiments import study
+    assert study.main(["ab_solver", "env=ft", "dry_run=true"]) == 0
+    lines = capsys.readouterr().out.strip().splitlines()
+    assert len(lines) == 8 and {ln.split("arch=")[1].split()[0] for ln in lines} == {"metamorph", "rmemo"}
+    for ln in lines:
+        cmd = ln.split("   #")[0].split()
+        arm = "converged" if "-converged-" in ln else "capped"
+        assert cmd[-3:] == ["total_steps=100000000", "stop_at=220",
+                            f"env.iterations={16 if arm == 'converged' else 5}"], ln
+        assert ln.endswith("# then evaluate ['test', 'variants']") and ("seed=7" in cmd or "seed=8" in cmd)
+
 def test_study_workers_split_the_runs_one_gpu_each(capsys, monkeypatch, unimals):
     """workers=N: every run of the plan goes to exactly one worker, the seeds of a run to different workers; each
     worker is the same study with worker=k on GPU k alone, its lines relayed with [w<k>]; a failed worker fails the
