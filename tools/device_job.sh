@@ -23,7 +23,8 @@
 #     'seeds=[0,1]' time_limit_min=8.7 -- progress=false
 #   bash tools/device_job.sh --continue fp32 python -m experiments.study ...    # the second and third calls
 # --continue stops at once (exit status 3) on a machine without runs/: the chain broke, and the command would
-# start the runs again from nothing.
+# start the runs again from nothing. Different commands one per GPU (say two studies): `bash tools/device_job.sh zs
+# bash tools/per_gpu.sh '<command>' '<command>'`, never `bash -c 'a & b & wait'` (see tools/per_gpu.sh).
 set -o pipefail
 if [ "$1" = prepare ]; then
   [ -d ../shared ] || { echo "../shared is missing: clone the project beside it" >&2; exit 2; }
