@@ -168,22 +168,26 @@ def test_fit_shrinks_the_carried_cache_to_the_room_the_checkout_leaves(tmp_path)
 
 
 def test_per_gpu_gives_each_command_its_gpu_and_ctrl_c_and_waits_for_all(tmp_path):
-    """tools/per_gpu.sh: command k sees CUDA_VISIBLE_DEVICES=k, its lines come prefixed [gpu<k>]; Ctrl-C at the time
-    limit (device_job.sh's `timeout -s INT`, to the process group) reaches every command, which can still save, and
-    the script waits for them all (a plain `a & b & wait` starts them with Ctrl-C ignored); its exit status is the
-    first nonzero one."""
+    """tools/per_gpu.sh: command k sees CUDA_VISIBLE_DEVICES=k, its lines come prefixed [gpu<k>]; Ctrl-C to the
+    process group (device_job.sh's `timeout -s INT` at its time limit) reaches every command, which can still save,
+    and the script waits for them all (a plain `a & b & wait` starts them with Ctrl-C ignored); its exit status is
+    the first nonzero one."""
+    import os
+    import signal
     import sys
     script = SCRIPT.parent / "per_gpu.sh"
     saver = tmp_path / "saver.py"
-    saver.write_text("import os, sys, time\nprint('gpu', os.environ['CUDA_VISIBLE_DEVICES'], flush=True)\n"
-                     "try:\n    time.sleep(30)\nexcept KeyboardInterrupt:\n    time.sleep(1)\n"
+    saver.write_text("import os, sys, time\ntry:\n    print('gpu', os.environ['CUDA_VISIBLE_DEVICES'], flush=True)\n"
+                     "    time.sleep(60)\nexcept KeyboardInterrupt:\n    time.sleep(1)\n"
                      "    open(sys.argv[1], 'w').write('saved')\n    print('saved', flush=True)\n")
     cmds = [f"{sys.executable} {saver} {tmp_path / name}" for name in ("a", "b")]
-    r = subprocess.run(["timeout", "-s", "INT", "-k", "20", "3", "bash", str(script), *cmds], capture_output=True,
-                       text=True)
-    assert r.returncode == 124
+    p = subprocess.Popen(["bash", str(script), *cmds], stdout=subprocess.PIPE, text=True, start_new_session=True)
+    lines = [p.stdout.readline().strip() for _ in range(2)]       # both are running
+    assert sorted(lines) == ["[gpu0] gpu 0", "[gpu1] gpu 1"]
+    os.killpg(p.pid, signal.SIGINT)
+    rest = p.communicate(timeout=30)[0].splitlines()
+    assert p.returncode == 0 and sorted(rest) == ["[gpu0] saved", "[gpu1] saved"]
     assert (tmp_path / "a").read_text() == (tmp_path / "b").read_text() == "saved"
-    assert {"[gpu0] gpu 0", "[gpu1] gpu 1", "[gpu0] saved", "[gpu1] saved"} == set(r.stdout.splitlines())
     r = subprocess.run(["bash", str(script), "true", "exit 5", "exit 7"], capture_output=True, text=True)
     assert r.returncode == 5
     r = subprocess.run(["bash", str(script)], capture_output=True, text=True)
