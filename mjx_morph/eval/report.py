@@ -194,7 +194,8 @@ def _display(p: Path) -> str:
 def _runs_table(doc: Document, ctx: ReportContext) -> None:
     runs = ctx.runs
     header = ["run", "task", "arch", "seed", "kind", "num_robots", "context_features", "iterations", "env_steps",
-              "device", "physics", "physics_computed", "wall_h", "h_per_100M", "mean_sps", "final_train_return", "evals"]
+              "device", "physics", "physics_computed", "wall_h", "h_per_100M", "mean_sps", "final_train_return",
+              "evals"]
     rows, md = [], []
     for r in runs:
         label = r.context_label
