@@ -180,14 +180,21 @@ def test_per_gpu_gives_each_command_its_gpu_and_ctrl_c_and_waits_for_all(tmp_pat
     saver.write_text("import os, sys, time\ntry:\n    print('gpu', os.environ['CUDA_VISIBLE_DEVICES'], flush=True)\n"
                      "    time.sleep(60)\nexcept KeyboardInterrupt:\n    time.sleep(1)\n"
                      "    open(sys.argv[1], 'w').write('saved')\n    print('saved', flush=True)\n")
-    cmds = [f"{sys.executable} {saver} {tmp_path / name}" for name in ("a", "b")]
-    p = subprocess.Popen(["bash", str(script), *cmds], stdout=subprocess.PIPE, text=True, start_new_session=True)
-    lines = [p.stdout.readline().strip() for _ in range(2)]       # both are running
-    assert sorted(lines) == ["[gpu0] gpu 0", "[gpu1] gpu 1"]
-    os.killpg(p.pid, signal.SIGINT)
-    rest = p.communicate(timeout=30)[0].splitlines()
-    assert p.returncode == 0 and sorted(rest) == ["[gpu0] saved", "[gpu1] saved"]
-    assert (tmp_path / "a").read_text() == (tmp_path / "b").read_text() == "saved"
+    for entry in (signal.SIG_DFL, signal.SIG_IGN):         # the script started as from a terminal, or with Ctrl-C
+        for name in ("a", "b"):                           # ignored (as under pytest-xdist: bash cannot undo that)
+            (tmp_path / name).unlink(missing_ok=True)
+        cmds = [f"{sys.executable} {saver} {tmp_path / name}" for name in ("a", "b")]
+        p = subprocess.Popen(["bash", str(script), *cmds], stdout=subprocess.PIPE, text=True, start_new_session=True,
+                             preexec_fn=lambda: signal.signal(signal.SIGINT, entry))
+        lines = [p.stdout.readline().strip() for _ in range(2)]       # both are running
+        assert sorted(lines) == ["[gpu0] gpu 0", "[gpu1] gpu 1"]
+        os.killpg(p.pid, signal.SIGINT)
+        try:
+            rest = p.communicate(timeout=30)[0].splitlines()
+        finally:
+            os.killpg(p.pid, signal.SIGKILL) if p.poll() is None else None
+        assert p.returncode == 0 and sorted(rest) == ["[gpu0] saved", "[gpu1] saved"], entry
+        assert (tmp_path / "a").read_text() == (tmp_path / "b").read_text() == "saved"
     r = subprocess.run(["bash", str(script), "true", "exit 5", "exit 7"], capture_output=True, text=True)
     assert r.returncode == 5
     r = subprocess.run(["bash", str(script)], capture_output=True, text=True)
