@@ -180,12 +180,16 @@ def test_per_gpu_gives_each_command_its_gpu_and_ctrl_c_and_waits_for_all(tmp_pat
     saver.write_text("import os, sys, time\ntry:\n    print('gpu', os.environ['CUDA_VISIBLE_DEVICES'], flush=True)\n"
                      "    time.sleep(60)\nexcept KeyboardInterrupt:\n    time.sleep(1)\n"
                      "    open(sys.argv[1], 'w').write('saved')\n    print('saved', flush=True)\n")
-    for entry in (signal.SIG_DFL, signal.SIG_IGN):         # the script started as from a terminal, or with Ctrl-C
-        for name in ("a", "b"):                           # ignored (as under pytest-xdist: bash cannot undo that)
+    # the script started as from a terminal, or with Ctrl-C ignored (as under pytest-xdist: bash cannot undo that);
+    # set by a Python shim that execs it (a preexec_fn would fork this JAX process)
+    shim = ("import os, signal, sys; signal.signal(signal.SIGINT, getattr(signal, sys.argv[1])); "
+            "os.execvp('bash', ['bash', *sys.argv[2:]])")
+    for entry in ("SIG_DFL", "SIG_IGN"):
+        for name in ("a", "b"):
             (tmp_path / name).unlink(missing_ok=True)
         cmds = [f"{sys.executable} {saver} {tmp_path / name}" for name in ("a", "b")]
-        p = subprocess.Popen(["bash", str(script), *cmds], stdout=subprocess.PIPE, text=True, start_new_session=True,
-                             preexec_fn=lambda: signal.signal(signal.SIGINT, entry))
+        p = subprocess.Popen([sys.executable, "-c", shim, entry, str(script), *cmds], stdout=subprocess.PIPE,
+                             text=True, start_new_session=True)
         lines = [p.stdout.readline().strip() for _ in range(2)]       # both are running
         assert sorted(lines) == ["[gpu0] gpu 0", "[gpu1] gpu 1"]
         os.killpg(p.pid, signal.SIGINT)
