@@ -11,7 +11,8 @@
 # waits for all of them, and exits with the first nonzero exit status in the order given (0 when all succeed).
 set -o pipefail
 [ $# -ge 1 ] || { echo "usage: bash tools/per_gpu.sh '<command for GPU 0>' ['<command for GPU 1>' ...]" >&2; exit 2; }
-default_int='import os, signal, sys; signal.signal(signal.SIGINT, signal.SIG_DFL); os.execvp("bash", ["bash", "-c", sys.argv[1]])'
+default_int='import os, signal, sys; signal.signal(signal.SIGINT, signal.SIG_DFL)
+os.execvp("bash", ["bash", "-c", sys.argv[1]])'
 pids=()
 k=0
 for cmd in "$@"; do
