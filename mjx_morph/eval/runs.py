@@ -25,7 +25,7 @@ import numpy as np
 import yaml
 
 from ..layout import CONTEXT_GROUPS as _GROUPS
-from ..run.run_dir import flatten_config, matches_key, read_computed_physics, read_invocations
+from ..run.run_dir import flatten_config, invoked_values, matches_key, read_computed_physics, read_invocations
 
 CONTEXT_GROUPS: tuple[str, ...] = tuple(_GROUPS)     # in column order: the order of the groups in figures
 
@@ -153,21 +153,16 @@ class Run:
         steps = [e.get("env_steps") for e in self.evals.values() if isinstance(e.get("env_steps"), (int, float))]
         return float(max(steps)) if steps else float("nan")
 
-    def _invoked(self, key: str) -> list[str]:
-        """The distinct values of `key` over the run's invocations (devices.yaml), in order; [] when not recorded."""
-        vals = [str(e[key]) for e in self.invocations if isinstance(e, dict) and e.get(key)]
-        return list(dict.fromkeys(vals))
-
     @property
     def physics(self) -> list[str]:
         """The model digests the run trained on (`UnimalEnv.digest`: the physics simulated); [] for runs before
         session 45. More than one: resumed with allow_changes=[model_digest]."""
-        return self._invoked("model_digest")
+        return invoked_values(self.invocations, "model_digest")
 
     @property
     def devices(self) -> list[str]:
         """The device kinds the run was trained on (e.g. ["NVIDIA H200"]); [] when unknown."""
-        return self._invoked("device_kind")
+        return invoked_values(self.invocations, "device_kind")
 
     @property
     def iterations(self) -> int:

@@ -35,6 +35,7 @@ from ..nets.precision import check as check_precision
 from ..nets.zoo import ModelOptions, recommended
 from ..ppo.config import PPOConfig
 from ..sim.env import EnvConfig
+from ..sim.model import is_digest
 from ..sim.tasks import TASKS
 from .compile_cache import DEFAULT_COMPILE_CACHE
 
@@ -119,8 +120,7 @@ class RunConfig:
             if self.run_dir is not None and "{seed}" not in self.run_dir:
                 raise ValueError(f"run_dir={self.run_dir}: with seeds={self.seeds} each seed needs its own run "
                                  "directory; put {seed} in it (quoted for Hydra: 'run_dir=\"runs/x-s{seed}\"')")
-        if self.expect_physics is not None and not (
-                8 <= len(self.expect_physics) <= 16 and all(c in "0123456789abcdef" for c in self.expect_physics)):
+        if self.expect_physics is not None and not is_digest(self.expect_physics, prefix=True):
             raise ValueError(f"expect_physics={self.expect_physics}: expected 8 to 16 lowercase hex digits of a model "
                              "digest (devices.yaml's model_digest, or `python -m experiments.digest runs=[...]`)")
         self.ppo.check_values()

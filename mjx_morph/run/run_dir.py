@@ -54,6 +54,7 @@ import orbax.checkpoint as ocp
 import yaml
 from tensorboardX import SummaryWriter
 
+from ..sim.model import is_digest
 from .distributed import barrier, is_main, several
 
 
@@ -151,10 +152,14 @@ def cache_key_machine() -> dict:
 COMPUTED_PHYSICS = "physics.yaml"
 
 
+def invoked_values(entries: list, key: str) -> list[str]:
+    """The distinct values of `key` over devices.yaml's `entries` (`read_invocations`), in order; [] for none."""
+    return list(dict.fromkeys(str(e[key]) for e in entries if isinstance(e, dict) and e.get(key)))
+
+
 def recorded_digests(run_dir: str | Path) -> list[str]:
     """The distinct model digests `run_dir`'s invocations recorded (devices.yaml), in order; [] for none."""
-    vals = [str(e["model_digest"]) for e in read_invocations(run_dir) if isinstance(e, dict) and e.get("model_digest")]
-    return list(dict.fromkeys(vals))
+    return invoked_values(read_invocations(run_dir), "model_digest")
 
 
 def read_computed_physics(run_dir: str | Path) -> dict | None:
@@ -168,7 +173,7 @@ def read_computed_physics(run_dir: str | Path) -> dict | None:
     except (OSError, yaml.YAMLError, UnicodeDecodeError) as e:
         raise ValueError(f"{f}: unreadable ({type(e).__name__})") from None
     digest = data.get("model_digest") if isinstance(data, dict) else None
-    if not (isinstance(digest, str) and len(digest) == 16 and all(c in "0123456789abcdef" for c in digest)):
+    if not is_digest(digest):
         raise ValueError(f"{f}: expected a mapping with model_digest: 16 hex digits, found {digest!r}")
     return data
 

@@ -180,6 +180,12 @@ def model_digest(**parts: Any) -> str:
     return h.hexdigest()[:16]
 
 
+def is_digest(s: Any, prefix: bool = False) -> bool:
+    """Whether `s` is a `model_digest` (16 lowercase hex digits), or with `prefix` its first 8 to 16 digits."""
+    return (isinstance(s, str) and (8 if prefix else 16) <= len(s) <= 16
+            and all(c in "0123456789abcdef" for c in s))
+
+
 def _fix_static(mm: mujoco.MjModel) -> None:
     mm.body_sameframe[:] = 0
     mm.geom_sameframe[:] = 0
