@@ -18,7 +18,7 @@ from scipy import stats
 
 from mjx_morph.eval import plots
 from mjx_morph.eval.report import CLAIMS, Looks, build_report
-from mjx_morph.eval.runs import NotARunDir, Run, classify, find_run_dirs, name_variants
+from mjx_morph.eval.runs import NotARunDir, Run, classify, find_run_dirs, name_variants, read_manifest, read_run
 from mjx_morph.eval.stats import TASK_RANGES, claim_test, furthest_mean_curve, mean_curve
 from mjx_morph.unimal.variants import CHANGE_TYPES
 
@@ -533,6 +533,57 @@ def test_cli_rejects_a_non_run_path(tmp_path):
                        cwd=ROOT, capture_output=True, text=True, timeout=120)
     assert p.returncode == 2, p.stderr
     assert "error: /nonexistent: not a run directory (no config.yaml)" in p.stderr
+    assert not (tmp_path / "o").exists()
+
+
+def test_the_claims_manifest_holds_every_paper_run_once_and_each_seed_once():
+    """results/claims.yaml (the runs of docs/results.md's claims table): every run directory of results/paper_s*/
+    stands in exactly one of its lists, so a run brought home without a decision fails here; no model's seed is
+    pooled twice, pending included (e.g. a rerun of seed 7 beside its first run); a pending run is not yet pooled."""
+    m = read_manifest(ROOT / "results" / "claims.yaml")
+    listed = [p.resolve() for p in m.runs + m.pending + list(m.excluded)]
+    assert len(listed) == len(set(listed))
+    on_file = {p.resolve() for d in sorted((ROOT / "results").glob("paper_s*")) for p in find_run_dirs([d])}
+    assert not on_file - set(listed), f"runs of results/paper_s*/ in no list of results/claims.yaml: " \
+                                      f"{sorted(str(p) for p in on_file - set(listed))}"
+    seeds = [(r.task, r.arch, r.seed) for r in map(read_run, m.runs + m.pending)]
+    assert len(seeds) == len(set(seeds)), sorted(s for s in seeds if seeds.count(s) > 1)
+    assert m.runs and m.excluded and all(why.strip() for why in m.excluded.values())
+    Looks.parse(m.looks)
+
+
+def test_a_manifest_names_the_file_and_entry_of_each_mistake(tmp_path):
+    """read_manifest: globs relative to the manifest's folder, folders of runs allowed; an unknown key, an entry
+    that matches nothing, a run reached twice (two entries, or pooled and excluded), an exclusion without its reason
+    and an empty `runs` are errors naming the file and the entry; the CLI takes a manifest or runs=, not both."""
+    a, _ = make_run(tmp_path / "s1", "ft-rmomo-s0", evals=(), metrics=False)
+    b, _ = make_run(tmp_path / "s1", "ft-rmomo-s1", seed=1, evals=(), metrics=False)
+    c, _ = make_run(tmp_path / "s2" / "nested", "ft-modumorph-s0", arch="modumorph", evals=(), metrics=False)
+    f = tmp_path / "m.yaml"
+
+    def manifest(**kw):
+        f.write_text(yaml.safe_dump(kw))
+        return read_manifest(f)
+
+    m = manifest(runs=["s1/ft-*"], pending=["s2"], excluded={}, looks={"ft/rmomo": 2})
+    assert m.runs == [a, b] and m.pending == [c] and m.looks == {"ft/rmomo": 2}
+    assert manifest(runs=["s1/ft-rmomo-s[0]"], excluded={"s1/ft-rmomo-s1": "a bad seed"}).excluded == {b: "a bad seed"}
+    for kw, message in [
+            (dict(runs=["s1/*"], seeds=[0]), r"m.yaml: unknown key\(s\) seeds"),
+            (dict(runs=["s1/*", "s3/*"]), r"m.yaml: runs\[1\] 's3/\*': matches no run directory"),
+            (dict(runs=["s1/*", "s1/ft-rmomo-s1"]), r"runs\[1\] 's1/ft-rmomo-s1': .*ft-rmomo-s1 is already reached by "
+                                                      r"runs\[0\] 's1/\*'"),
+            (dict(runs=["s1/*"], excluded={"s1/ft-rmomo-s0": "why"}), r"runs\[0\] 's1/\*': .*ft-rmomo-s0 is already "
+                                                                       r"reached by excluded"),
+            (dict(runs=["s1/*"], excluded={"s2": " "}), r"excluded 's2': say why it is left out"),
+            (dict(pending=["s1/*"]), r"m.yaml: runs: expected at least one run"),
+            (dict(runs="s1/*"), r"runs: expected a list of globs")]:
+        with pytest.raises(ValueError, match=message):
+            manifest(**kw)
+    f.write_text(yaml.safe_dump(dict(runs=["s1/*"])))
+    p = subprocess.run([sys.executable, "-m", "experiments.report", f"manifest={f}", f"runs=[{a}]",
+                        f"out={tmp_path / 'o'}"], cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert p.returncode == 2 and "it gives the runs and the looks; drop runs= and looks=" in p.stderr, p.stderr
     assert not (tmp_path / "o").exists()
 
 

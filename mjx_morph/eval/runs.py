@@ -19,7 +19,7 @@ import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterable, Sequence
+from typing import Any, Iterable, Sequence
 
 import numpy as np
 import yaml
@@ -64,6 +64,76 @@ def find_run_dirs(paths: Iterable[str | Path]) -> list[Path]:
             seen.add(key)
             out.append(p)
     return out
+
+
+@dataclass
+class Manifest:
+    """A list of runs kept as data (`results/claims.yaml`): the runs a report pools, the looks its claims have had,
+    the runs that wait for the next look, and those on file but left out, each with why (`read_manifest`)."""
+    path: Path
+    runs: list[Path]                       # the run directories the report pools
+    looks: Any                             # the report's `looks`: an int or {<model> | <task>/<model>: k}
+    pending: list[Path]                    # on file, pooled only from the next look on
+    excluded: dict[Path, str]              # on file, never pooled: run directory -> why
+
+
+MANIFEST_KEYS = ("looks", "runs", "pending", "excluded")
+
+
+def read_manifest(path: str | Path) -> Manifest:
+    """Read a manifest: YAML with `runs` and `pending` (lists of globs of run directories, or folders holding them,
+    relative to the manifest's folder), `looks` (as the report's `looks=`) and `excluded` ({glob: why}). Every entry
+    must match something, and no run may be reached twice (by two entries or two lists): a seed pooled twice, or
+    pooled and excluded, is an error naming the file, the entry and the run."""
+    path = Path(path)
+    if not path.is_file():
+        raise ValueError(f"{path}: no such manifest")
+    data = yaml.safe_load(path.read_text())
+    if not isinstance(data, dict):
+        raise ValueError(f"{path}: expected a mapping with keys {', '.join(MANIFEST_KEYS)}")
+    unknown = sorted(set(data) - set(MANIFEST_KEYS))
+    if unknown:
+        raise ValueError(f"{path}: unknown key(s) {', '.join(unknown)} (expected {', '.join(MANIFEST_KEYS)})")
+    base, owner = path.parent, {}
+
+    def expand(key: str, entries) -> list[Path]:
+        out = []
+        for i, entry in enumerate(entries):
+            where = f"{path}: {key}[{i}] {entry!r}"
+            if not isinstance(entry, str) or not entry:
+                raise ValueError(f"{where}: expected a glob of run directories relative to {base}")
+            matches = sorted(base.glob(entry))
+            try:
+                dirs = find_run_dirs(matches) if matches else []
+            except NotARunDir as e:
+                raise ValueError(f"{where}: {e}") from None
+            if not dirs:
+                raise ValueError(f"{where}: matches no run directory below {base}")
+            for d in dirs:
+                if d.resolve() in owner:
+                    raise ValueError(f"{where}: {d} is already reached by {owner[d.resolve()]}")
+                owner[d.resolve()] = f"{key}[{i}] {entry!r}"
+                out.append(d)
+        return out
+
+    def listed(key: str) -> list:
+        v = data.get(key) or []
+        if not isinstance(v, list):
+            raise ValueError(f"{path}: {key}: expected a list of globs, got {type(v).__name__}")
+        return v
+
+    excluded_raw = data.get("excluded") or {}
+    if not isinstance(excluded_raw, dict):
+        raise ValueError(f"{path}: excluded: expected a mapping {{glob: why}}, got {type(excluded_raw).__name__}")
+    excluded = {}
+    for entry, why in excluded_raw.items():
+        if not isinstance(why, str) or not why.strip():
+            raise ValueError(f"{path}: excluded {entry!r}: say why it is left out")
+        excluded.update({d: why for d in expand("excluded", [entry])})
+    runs, pending = expand("runs", listed("runs")), expand("pending", listed("pending"))
+    if not runs:
+        raise ValueError(f"{path}: runs: expected at least one run")
+    return Manifest(path, runs, data.get("looks", 1), pending, excluded)
 
 
 def _float(v) -> float:
