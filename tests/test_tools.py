@@ -3,6 +3,8 @@ installed (the machine's wheels and GPU are not here)."""
 import subprocess
 from pathlib import Path
 
+import pytest
+
 SCRIPT = Path(__file__).resolve().parents[1] / "tools" / "device_job.sh"
 
 
@@ -11,15 +13,19 @@ def job(*args, cwd, out=None, **extra_env):
     return subprocess.run(["bash", str(SCRIPT), *args], cwd=cwd, env=env, capture_output=True, text=True)
 
 
-def load_xla_cache():
-    """tools/xla_cache.py as a module (tools/ is not a package)."""
+def load_tool(name: str):
+    """tools/<name>.py as a module (tools/ is not a package)."""
+    import importlib
     import sys
     sys.path.insert(0, str(SCRIPT.parent))
     try:
-        import xla_cache
+        return importlib.import_module(name)
     finally:
         sys.path.pop(0)
-    return xla_cache
+
+
+def load_xla_cache():
+    return load_tool("xla_cache")
 
 
 def test_continue_refuses_a_fresh_machine_and_runs_nothing(tmp_path):
@@ -165,6 +171,67 @@ def test_fit_shrinks_the_carried_cache_to_the_room_the_checkout_leaves(tmp_path)
     assert "what else travels: 64.0 MiB of 64" in r.stdout
     r = job("fit", cwd=tmp_path / "back")           # no .gpu/xla-cache.tar.gz: nothing to do
     assert r.returncode == 0 and "nothing to fit" in r.stdout
+
+
+def test_a_run_moved_in_parts_is_placed_call_by_call_and_put_back_before_the_command(tmp_path):
+    """tools/move_runs.py with device_job.sh: a run's newest checkpoint packed in parts as DEVICE_JOB_MOVE_OUT does
+    (experiments.collect checkpoint=true, named by `name`), staged here two parts a folder, each folder placed on the
+    machine by one call (`place`), then the next call puts the run back under runs/studies/<study>/ before anything
+    else, byte for byte, and removes the parts; with a part missing or corrupt, or the run already there, it stops
+    with exit status 4 before running anything and writes nothing of the run."""
+    import os
+    import sys
+    from experiments import collect
+    move_runs = load_tool("move_runs")
+    run = tmp_path / "gpu" / "runs" / "studies" / "paper" / "ft-metamorph-main-s9"
+    (run / "checkpoints" / "40").mkdir(parents=True)
+    (run / "checkpoints" / "65" / "state").mkdir(parents=True)
+    (run / "config.yaml").write_text("arch: metamorph\nseed: 9\n")
+    (run / "checkpoints" / "40" / "old").write_bytes(os.urandom(50_000))
+    blob = os.urandom(150_000)
+    (run / "checkpoints" / "65" / "state" / "data").write_bytes(blob)
+    name = move_runs.archive_name("runs/studies/paper/ft-metamorph-main-s9")
+    assert name == "move.paper.ft-metamorph-main-s9.tar.gz"
+    out = tmp_path / "out"
+    out.mkdir()
+    assert collect.main([f"runs=[{run}]", f"out={out / name}", "checkpoint=true", "part_mb=0.05"]) == 0
+    parts = sorted(out.glob(name + ".*"))
+    assert len(parts) == 3                                           # ~150 kB of 52 kB parts
+    repo = tmp_path / "repo"
+    repo.mkdir()
+    r = subprocess.run([sys.executable, str(SCRIPT.parent / "move_runs.py"), "stage", str(out), str(repo / ".mv")],
+                       capture_output=True, text=True)
+    assert r.returncode == 0 and sorted(p.name for p in (repo / ".mv1").iterdir()) == [p.name for p in parts[:2]]
+    assert "carry it in one call" in r.stdout and sorted((repo / ".mv2").iterdir())[0].name == parts[2].name
+    for folder in (".mv1", ".mv2"):
+        r = job("place", folder, cwd=repo, out=out)
+        assert r.returncode == 0, r.stdout + r.stderr
+    assert sorted(p.name for p in (repo / "moving").iterdir()) == [p.name for p in parts]
+    back = repo / "runs" / "studies" / "paper" / "ft-metamorph-main-s9"
+    r = job("zs", "true", cwd=repo, out=out)            # no wheels here: the call stops at pip, after the move
+    assert "moved in: runs/studies/paper/ft-metamorph-main-s9" in r.stdout, r.stdout + r.stderr
+    assert (back / "checkpoints" / "65" / "state" / "data").read_bytes() == blob
+    assert (back / "config.yaml").is_file() and not (back / "checkpoints" / "40").exists()
+    assert list((repo / "moving").iterdir()) == []
+    # the same parts again, now that the run is back: refused, nothing replaced
+    for p in parts:
+        (repo / "moving" / p.name).write_bytes(p.read_bytes())
+    marker = repo / "ran"
+    r = job("zs", "touch", str(marker), cwd=repo, out=out)
+    assert r.returncode == 4 and "exists already" in r.stderr and not marker.exists()
+    import shutil
+    shutil.rmtree(repo / "runs")
+    (repo / "moving" / parts[1].name).unlink()                    # a lost middle part
+    r = job("zs", "touch", str(marker), cwd=repo, out=out)
+    assert r.returncode == 4 and "lacks part(s) 001" in r.stderr and not marker.exists()
+    (repo / "moving" / parts[1].name).write_bytes(parts[1].read_bytes())
+    (repo / "moving" / parts[2].name).unlink()                    # a lost last part: only the archive's end tells
+    r = job("zs", "touch", str(marker), cwd=repo, out=out)
+    assert r.returncode == 4 and "incomplete or corrupt" in r.stderr and not marker.exists()
+    assert not (repo / "runs" / "studies" / "paper" / "ft-metamorph-main-s9").exists()
+    assert job("place", ".nothing", cwd=repo, out=out).returncode == 4
+    with pytest.raises(move_runs.MoveError, match="expected runs/studies/<study>/<run>"):
+        move_runs.archive_name("runs/studies/pa.per/x")
 
 
 def test_per_gpu_gives_each_command_its_gpu_and_ctrl_c_and_waits_for_all(tmp_path):

@@ -59,11 +59,26 @@ if [ "$1" = fit ]; then
     python3 "$(dirname "$0")/xla_cache.py" fit $cache
   exit "${PIPESTATUS[1]}"      # fit's own (find fails where .whl is missing, which changes nothing)
 fi
+# Moving an unfinished run to the next session's machine (tools/move_runs.py: feed-forward models only, ~41 MiB):
+#   there, in the lease's last call: DEVICE_JOB_MOVE_OUT=runs/studies/<study>/<run> also packs that run's newest
+#     checkpoint into $OUT/move.<study>.<run>.tar.gz.000, .001, ... (15 MiB each; with the log, the runs and a cache
+#     at most 8 files and 64 MiB come back);
+#   here: python3 tools/move_runs.py stage <files_at> .mv      (folders .mv1, .mv2, ... of two parts each);
+#   there, the next lease's first calls, one per folder: bash tools/device_job.sh place .mv1   (carry: [".mv1"]),
+#     which keeps the parts in moving/ on the machine; then every later call puts the run back before its command
+#     (exit status 4, nothing run, where parts are missing or corrupt), and the study resumes it.
+if [ "$1" = place ]; then
+  [ $# -eq 2 ] || { echo "usage: bash tools/device_job.sh place <folder of parts>" >&2; exit 2; }
+  exec python3 "$(dirname "$0")/move_runs.py" place "$2" moving
+fi
 continuing=0
 [ "$1" = --continue ] && { continuing=1; shift; }
 [ $# -ge 2 ] || { echo "usage: bash tools/device_job.sh prepare | [--continue] <name> <command ...>" >&2; exit 2; }
 [ -n "$OUT" ] || { echo "\$OUT is not set: run this through the device tool" >&2; exit 2; }
 name=$1; shift
+if [ -d moving ]; then          # parts that `place` kept: the moved runs back under runs/studies before the command
+  python3 "$(dirname "$0")/move_runs.py" assemble moving runs/studies || exit 4
+fi
 if [ $continuing = 1 ] && [ ! -d runs ]; then
   echo "[device_job] $name: --continue, but runs/ is not here: this is a fresh machine (the warm one went back, and" \
        "the runs of the earlier calls with it). Nothing was run; the device time left is better spent otherwise." >&2
@@ -102,6 +117,10 @@ rc=${PIPESTATUS[0]}
 [ $rc -eq 124 ] && echo "[device_job] $name: interrupted after $limit s of the call (DEVICE_JOB_LIMIT_S)"
 dirs=$(ls -d runs/studies/* runs/* 2>/dev/null | grep -vx runs/studies | paste -sd, -)   # a study's runs: <study>/<run>
 [ -n "$dirs" ] && python3 -m experiments.collect "runs=[$dirs]" out="$OUT/$name-runs.tar.gz" 2>&1 | tail -1
+for run in ${DEVICE_JOB_MOVE_OUT:-}; do   # an unfinished run to move (above): its newest checkpoint in 15-MiB parts
+  move=$(python3 tools/move_runs.py name "$run") &&
+    python3 -m experiments.collect "runs=[$run]" out="$OUT/$move" checkpoint=true part_mb=15 2>&1 | tail -1
+done
 [ "${DEVICE_JOB_SAVE_XLA:-0}" = 1 ] && python3 tools/xla_cache.py pack "$MJX_MORPH_XLA_CACHE" "$OUT/xla-cache.tar.gz"
 echo "[device_job] $name: exit status $rc"
 exit $rc
