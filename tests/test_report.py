@@ -574,7 +574,7 @@ def test_a_manifest_names_the_file_and_entry_of_each_mistake(tmp_path):
             (dict(runs=["s1/*", "s1/ft-rmomo-s1"]), r"runs\[1\] 's1/ft-rmomo-s1': .*ft-rmomo-s1 is already reached by "
                                                       r"runs\[0\] 's1/\*'"),
             (dict(runs=["s1/*"], excluded={"s1/ft-rmomo-s0": "why"}), r"runs\[0\] 's1/\*': .*ft-rmomo-s0 is already "
-                                                                       r"reached by excluded"),
+                                                                       r"reached by excluded 's1/ft-rmomo-s0'"),
             (dict(runs=["s1/*"], excluded={"s2": " "}), r"excluded 's2': say why it is left out"),
             (dict(pending=["s1/*"]), r"m.yaml: runs: expected at least one run"),
             (dict(runs="s1/*"), r"runs: expected a list of globs")]:

@@ -96,10 +96,10 @@ def read_manifest(path: str | Path) -> Manifest:
         raise ValueError(f"{path}: unknown key(s) {', '.join(unknown)} (expected {', '.join(MANIFEST_KEYS)})")
     base, owner = path.parent, {}
 
-    def expand(key: str, entries) -> list[Path]:
+    def expand(key: str, entries, indexed: bool = True) -> list[Path]:
         out = []
         for i, entry in enumerate(entries):
-            where = f"{path}: {key}[{i}] {entry!r}"
+            where = f"{path}: {key}[{i}] {entry!r}" if indexed else f"{path}: {key} {entry!r}"
             if not isinstance(entry, str) or not entry:
                 raise ValueError(f"{where}: expected a glob of run directories relative to {base}")
             matches = sorted(base.glob(entry))
@@ -112,7 +112,7 @@ def read_manifest(path: str | Path) -> Manifest:
             for d in dirs:
                 if d.resolve() in owner:
                     raise ValueError(f"{where}: {d} is already reached by {owner[d.resolve()]}")
-                owner[d.resolve()] = f"{key}[{i}] {entry!r}"
+                owner[d.resolve()] = where.split(": ", 1)[1]
                 out.append(d)
         return out
 
@@ -129,7 +129,7 @@ def read_manifest(path: str | Path) -> Manifest:
     for entry, why in excluded_raw.items():
         if not isinstance(why, str) or not why.strip():
             raise ValueError(f"{path}: excluded {entry!r}: say why it is left out")
-        excluded.update({d: why for d in expand("excluded", [entry])})
+        excluded.update({d: why for d in expand("excluded", [entry], indexed=False)})
     runs, pending = expand("runs", listed("runs")), expand("pending", listed("pending"))
     if not runs:
         raise ValueError(f"{path}: runs: expected at least one run")
