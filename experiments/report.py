@@ -15,8 +15,9 @@ single-context-feature figures (PNG) and tables (also as CSV); what could not be
 at 1 - 0.05 / k and a claim holds at p < 0.025 / k (Bonferroni). Where the models' comparisons were looked at
 different numbers of times, `looks={<model>: k, <task>/<model>: k, ...}` gives each its own (unlisted: one look;
 a model is the claim's, rmomo or rmemo).
-`manifest=<yaml>`: the runs and the looks from a file instead (`mjx_morph.eval.runs.read_manifest`; `results/claims.yaml`
-holds those of docs/results.md's claims table, with the runs that wait for the next look and those left out).
+`manifest=<yaml>`: the runs and the looks from a file instead (`mjx_morph.eval.runs.read_manifest`;
+`results/claims.yaml` holds those of docs/results.md's claims table, with the runs that wait for the next look and
+those left out).
 See mjx_morph.eval.report.
 """
 from __future__ import annotations
