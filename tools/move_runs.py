@@ -7,7 +7,8 @@ nothing. With a move, the rest starts the next run: the lease's last call trains
 the next lease's first calls carry one folder each onto the machine (`place`, ~30 MiB beside the ~27 MiB checkout
 of the 64 MiB a call takes), and its training call puts the run back (`assemble`, in device_job.sh before the
 command), whose study then resumes it exactly. Only feed-forward models fit: MetaMorph's whole train state is
-41 MiB (3 parts), R-MeMo's 143 MiB (its burn-in tail and recurrent states).
+41 MiB (3 parts), ModuMorph's 63 MiB (5, at the 64 MiB a call brings back), R-MeMo's 143 MiB and R-MoMo's 166 MiB
+(their burn-in tails and recurrent states).
 
     python3 tools/move_runs.py name runs/studies/paper/ft-metamorph-main-s9     # move.paper.ft-metamorph-main-s9.tar.gz
     python3 tools/move_runs.py stage <files_at> .mv      # here: parts into .mv1/, .mv2/, ... (two each)
