@@ -110,6 +110,32 @@ def test_xla_cache_packs_this_leases_programs_before_carried_ones(tmp_path):
         assert tar.getnames() == ["new-init", "new-update", "hit", "stale-new"]
 
 
+def test_xla_cache_unpacked_again_keeps_what_the_earlier_calls_read(tmp_path):
+    """A second unpack on a warm machine (a call without --continue) leaves a program already there as it is, with
+    the access time that marks it read, so pack still ranks it among the read ones; a file whose size differs from
+    the archive's is written again."""
+    import os
+    import tarfile
+    xla_cache = load_xla_cache()
+    earlier = tmp_path / "earlier"
+    earlier.mkdir()
+    for name in ("read-old", "unread-new"):
+        (earlier / name).write_bytes(os.urandom(100_000))
+    os.utime(earlier / "read-old", (1000, 1000))
+    os.utime(earlier / "unread-new", (2000, 2000))
+    xla_cache.pack(earlier, tmp_path / "carried.tar.gz")
+    cache = tmp_path / "xla"
+    assert xla_cache.unpack(tmp_path / "carried.tar.gz", cache) == 2
+    os.utime(cache / "read-old", (5000, 1000))                     # the first call read it
+    (cache / "unread-new").write_bytes(b"truncated")               # a damaged copy
+    assert xla_cache.unpack(tmp_path / "carried.tar.gz", cache) == 2
+    assert (cache / "read-old").stat().st_atime == 5000
+    xla_cache.pack(cache, tmp_path / "out.tar.gz", max_mb=150_000 / 2 ** 20)     # room for one: the read one
+    with tarfile.open(tmp_path / "out.tar.gz") as tar:
+        assert tar.getnames() == ["read-old"]
+    assert (cache / "unread-new").read_bytes() == (earlier / "unread-new").read_bytes()   # (reading it marks it)
+
+
 def test_xla_cache_packs_training_programs_before_the_others(tmp_path):
     """The trainer's programs (jit__rollout, jit__update, ...: what a lease's first iteration waits for) go before the
     others, also a carried one nobody read before this lease's sweeps; within each kind the order stays."""

@@ -77,11 +77,14 @@ def pack(cache: Path, archive: Path, max_mb: float = MAX_MB) -> tuple[int, int, 
 
 def unpack(archive: Path, cache: Path) -> int:
     """Extract `archive` into `cache` (plain files only, no paths outside it, their times as packed) and list them in
-    `carried_list(cache)`; returns the files written."""
+    `carried_list(cache)`; returns the files in the archive. A file already there with the archive's size is left as
+    it is: on a warm machine a call without --continue unpacks again, and rewriting would reset the access times by
+    which `pack` knows what the earlier calls read (session 47 lost a program that way)."""
     cache.mkdir(parents=True, exist_ok=True)
     with tarfile.open(archive, "r:gz") as tar:
         members = [m for m in tar.getmembers() if m.isfile()]
-        tar.extractall(cache, members=members, filter="data")
+        new = [m for m in members if not ((cache / m.name).is_file() and (cache / m.name).stat().st_size == m.size)]
+        tar.extractall(cache, members=new, filter="data")
     carried_list(cache).write_text("".join(f"{m.name}\n" for m in members))
     return len(members)
 
