@@ -24,10 +24,6 @@ def load_tool(name: str):
         sys.path.pop(0)
 
 
-def load_xla_cache():
-    return load_tool("xla_cache")
-
-
 def test_continue_refuses_a_fresh_machine_and_runs_nothing(tmp_path):
     marker = tmp_path / "ran"
     r = job("--continue", "fp32", "touch", str(marker), cwd=tmp_path, out=tmp_path)
@@ -60,7 +56,7 @@ def test_xla_cache_travels_oldest_programs_first_within_its_size(tmp_path):
     byte, and the CLI says what it did."""
     import os
     import sys
-    xla_cache = load_xla_cache()
+    xla_cache = load_tool("xla_cache")
     cache = tmp_path / "xla"
     (cache / "sub").mkdir(parents=True)
     sizes = {"train-step": 600_000, "init": 300_000, "sub/variants-sweep": 500_000, "test-sweep": 100_000}
@@ -89,7 +85,7 @@ def test_xla_cache_packs_this_leases_programs_before_carried_ones(tmp_path):
     read (access time after modification time) before the unread, newest first: stale programs give way."""
     import os
     import tarfile
-    xla_cache = load_xla_cache()
+    xla_cache = load_tool("xla_cache")
     earlier = tmp_path / "earlier"
     earlier.mkdir()
     for name in ("hit", "stale-old", "stale-new"):
@@ -116,7 +112,7 @@ def test_xla_cache_unpacked_again_keeps_what_the_earlier_calls_read(tmp_path):
     the archive's is written again."""
     import os
     import tarfile
-    xla_cache = load_xla_cache()
+    xla_cache = load_tool("xla_cache")
     earlier = tmp_path / "earlier"
     earlier.mkdir()
     for name in ("read-old", "unread-new"):
@@ -141,7 +137,7 @@ def test_xla_cache_packs_training_programs_before_the_others(tmp_path):
     others, also a carried one nobody read before this lease's sweeps; within each kind the order stays."""
     import os
     import tarfile
-    xla_cache = load_xla_cache()
+    xla_cache = load_tool("xla_cache")
     key = "0" * 64
     earlier = tmp_path / "earlier"
     earlier.mkdir()
@@ -169,7 +165,7 @@ def test_fit_shrinks_the_carried_cache_to_the_room_the_checkout_leaves(tmp_path)
     checkout grows with the results, and the cache gives way: its first programs (pack's order, the most useful) stay,
     with their times (unpack ranks the carried ones by them), the rest go; a cache that fits is left as it was."""
     import os
-    xla_cache = load_xla_cache()
+    xla_cache = load_tool("xla_cache")
     cache = tmp_path / "xla"
     cache.mkdir()
     for age, name in enumerate(["jit__update-a-cache", "jit__rollout-b-cache", "jit_sweep-c-cache"]):

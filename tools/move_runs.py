@@ -102,26 +102,25 @@ def assemble(moving: Path, studies: Path) -> list[Path]:
         label = f"{moving}/move.{study}.{run}.tar.gz.000-{len(parts) - 1:03d}"
         if target.exists():
             raise MoveError(f"{label}: {target} exists already; the moved run would replace it")
-        tmp = studies / study / f".{run}.moving"
+        tmp = studies / study / f".{run}.moving"      # extracted here first: a failure leaves nothing of the run
         shutil.rmtree(tmp, ignore_errors=True)
         stream = io.BytesIO(b"".join(p.read_bytes() for p in parts))
         try:
-            with tarfile.open(fileobj=stream, mode="r:gz") as tar:
-                members = tar.getmembers()
-                strays = [m.name for m in members if m.name.split("/", 1)[0] != run or ".." in m.name.split("/")
-                          or not (m.isfile() or m.isdir())]
-                if strays or not members:
-                    raise MoveError(f"{label}: expected the files of {run}/ only, found {strays[:3] or 'nothing'}")
-                # the data filter where this Python has it (3.11.4+); the check above keeps to <run>/ either way
-                tar.extractall(tmp, **({"filter": "data"} if hasattr(tarfile, "data_filter") else {}))
-        except (tarfile.TarError, EOFError, OSError) as e:
+            try:
+                with tarfile.open(fileobj=stream, mode="r:gz") as tar:
+                    members = tar.getmembers()
+                    strays = [m.name for m in members if m.name.split("/", 1)[0] != run
+                              or ".." in m.name.split("/") or not (m.isfile() or m.isdir())]
+                    if strays or not members:
+                        raise MoveError(f"{label}: expected the files of {run}/ only, found {strays[:3] or 'nothing'}")
+                    # the data filter where this Python has it (3.11.4+); the check above keeps to <run>/ either way
+                    tar.extractall(tmp, **({"filter": "data"} if hasattr(tarfile, "data_filter") else {}))
+            except (tarfile.TarError, EOFError, OSError) as e:
+                raise MoveError(f"{label}: incomplete or corrupt ({type(e).__name__}: {e}); a lost last part looks "
+                                "so") from None
+            (tmp / run).rename(target)
+        finally:
             shutil.rmtree(tmp, ignore_errors=True)
-            raise MoveError(f"{label}: incomplete or corrupt ({type(e).__name__}: {e}); a lost last part looks so")
-        except MoveError:
-            shutil.rmtree(tmp, ignore_errors=True)
-            raise
-        (tmp / run).rename(target)
-        shutil.rmtree(tmp)
         for p in parts:
             p.unlink()
         done.append(target)

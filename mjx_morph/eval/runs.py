@@ -99,7 +99,8 @@ def read_manifest(path: str | Path) -> Manifest:
     def expand(key: str, entries, indexed: bool = True) -> list[Path]:
         out = []
         for i, entry in enumerate(entries):
-            where = f"{path}: {key}[{i}] {entry!r}" if indexed else f"{path}: {key} {entry!r}"
+            label = f"{key}[{i}] {entry!r}" if indexed else f"{key} {entry!r}"
+            where = f"{path}: {label}"
             if not isinstance(entry, str) or not entry:
                 raise ValueError(f"{where}: expected a glob of run directories relative to {base}")
             matches = sorted(base.glob(entry))
@@ -112,7 +113,7 @@ def read_manifest(path: str | Path) -> Manifest:
             for d in dirs:
                 if d.resolve() in owner:
                     raise ValueError(f"{where}: {d} is already reached by {owner[d.resolve()]}")
-                owner[d.resolve()] = where.split(": ", 1)[1]
+                owner[d.resolve()] = label
                 out.append(d)
         return out
 
