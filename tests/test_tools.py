@@ -256,6 +256,68 @@ def test_a_run_moved_in_parts_is_placed_call_by_call_and_put_back_before_the_com
         move_runs.archive_name("runs/studies/pa.per/x")
 
 
+def test_a_move_sends_what_fits_back_and_the_rest_call_by_call(tmp_path):
+    """A recurrent run's checkpoint (R-MeMo: 143 MiB, 10 parts) is more than one call brings back (8 files, 64 MiB):
+    `move_runs.py send` moves the parts waiting in outgoing/ into $OUT in order while they fit beside what is there,
+    `device_job.sh send` does so in a later call; `stage` takes the files of several calls and refuses, staging
+    nothing, while a run's last part is still missing (numbering cannot tell)."""
+    import os
+    import sys
+    from experiments import collect
+    move_runs = load_tool("move_runs")
+    run = tmp_path / "gpu" / "runs" / "studies" / "paper" / "ft-rmemo-main-s9"
+    (run / "checkpoints" / "65").mkdir(parents=True)
+    (run / "config.yaml").write_text("arch: rmemo\nseed: 9\n")
+    blob = os.urandom(200_000)
+    (run / "checkpoints" / "65" / "data").write_bytes(blob)
+    name = move_runs.archive_name("runs/studies/paper/ft-rmemo-main-s9")
+    outgoing = tmp_path / "gpu" / "outgoing"
+    assert collect.main([f"runs=[{run}]", f"out={outgoing / name}", "checkpoint=true", "part_mb=0.05"]) == 0
+    parts = sorted(p.name for p in outgoing.iterdir())
+    assert len(parts) == 4                                           # ~200 kB of 52 kB parts
+    calls = [tmp_path / f"call{k}" for k in (1, 2, 3)]
+    calls[0].mkdir()
+    (calls[0] / "zs.log").write_bytes(b"x" * 30_000)                 # what the call brings back already
+    sent, left = move_runs.send(outgoing, calls[0], room_mib=0.15, files=8)
+    assert [p.name for p in sent] == parts[:2] and [p.name for p in left] == parts[2:]   # 0.15 MiB: two parts
+    sent, left = move_runs.send(outgoing, calls[1], room_mib=10, files=1)
+    assert [p.name for p in sent] == parts[2:3]                       # one file slot: one part, in order
+    # the defaults: 63 MiB and 8 files less what $OUT holds; from the shell, as device_job.sh's `send` call
+    gpu = tmp_path / "gpu"
+    r = job("send", cwd=gpu, out=calls[2])
+    assert r.returncode == 0 and "sent 1 part(s)" in r.stdout and "no part left" in r.stdout, r.stdout + r.stderr
+    assert sorted(p.name for p in calls[2].iterdir()) == parts[3:] and not list(outgoing.iterdir())
+    r = job("send", cwd=tmp_path, out=calls[2])                       # a fresh machine: nothing packed here
+    assert r.returncode == 3 and "no outgoing/" in r.stderr
+    repo = tmp_path / "repo"
+    repo.mkdir()
+
+    def stage(*sources):
+        return subprocess.run([sys.executable, str(SCRIPT.parent / "move_runs.py"), "stage", *map(str, sources),
+                               str(repo / ".mv")], capture_output=True, text=True)
+    r = stage(calls[0], calls[1])                                     # the last part still on the machine
+    assert r.returncode == 4 and "end before the archive does" in r.stderr and "device_job.sh send" in r.stderr
+    assert not list(repo.iterdir())
+    r = stage(calls[0], calls[2])                                     # a middle part missing
+    assert r.returncode == 4 and "lacks part(s) 002" in r.stderr and not list(repo.iterdir())
+    r = stage(*calls)
+    assert r.returncode == 0, r.stderr
+    staged = sorted((repo / ".mv1").iterdir()) + sorted((repo / ".mv2").iterdir())
+    assert [p.name for p in staged] == parts
+    (repo / "moving").mkdir()
+    for folder in (".mv1", ".mv2"):
+        assert job("place", folder, cwd=repo, out=calls[2]).returncode == 0
+    assert move_runs.assemble(repo / "moving", repo / "runs" / "studies")
+    assert (repo / "runs/studies/paper/ft-rmemo-main-s9/checkpoints/65/data").read_bytes() == blob
+    # a part that came back twice with other bytes: refused
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / parts[0]).write_bytes(b"not the same")
+    r = subprocess.run([sys.executable, str(SCRIPT.parent / "move_runs.py"), "stage", str(calls[0]), str(other),
+                        str(tmp_path / ".mvx")], capture_output=True, text=True)
+    assert r.returncode == 4 and "with other bytes" in r.stderr and not (tmp_path / ".mvx1").exists()
+
+
 def test_per_gpu_gives_each_command_its_gpu_and_ctrl_c_and_waits_for_all(tmp_path):
     """tools/per_gpu.sh: command k sees CUDA_VISIBLE_DEVICES=k, its lines come prefixed [gpu<k>]; Ctrl-C to the
     process group (device_job.sh's `timeout -s INT` at its time limit) reaches every command, which can still save,

@@ -59,17 +59,26 @@ if [ "$1" = fit ]; then
     python3 "$(dirname "$0")/xla_cache.py" fit $cache
   exit "${PIPESTATUS[1]}"      # fit's own (find fails where .whl is missing, which changes nothing)
 fi
-# Moving an unfinished run to the next session's machine (tools/move_runs.py: feed-forward models only, ~41 MiB):
+# Moving an unfinished run to the next session's machine (tools/move_runs.py; MetaMorph 41 MiB, R-MoMo 166 MiB):
 #   there, in the lease's last call: DEVICE_JOB_MOVE_OUT=runs/studies/<study>/<run> also packs that run's newest
-#     checkpoint into $OUT/move.<study>.<run>.tar.gz.000, .001, ... (15 MiB each; with the log, the runs and a cache
-#     at most 8 files and 64 MiB come back);
-#   here: python3 tools/move_runs.py stage <files_at> .mv      (folders .mv1, .mv2, ... of two parts each);
+#     checkpoint into outgoing/move.<study>.<run>.tar.gz.000, .001, ... (15 MiB each) and sends the first parts back
+#     in $OUT, as many as fit beside the log, the runs and a cache (a call brings back at most 8 files, 64 MiB);
+#     `bash tools/device_job.sh send` (carry nothing), a call each, sends the next ones, up to four a call;
+#   here: python3 tools/move_runs.py stage <files_at> [<files_at> ...] .mv   (folders .mv1, .mv2, ... of two parts
+#     each, once every part is here);
 #   there, the next lease's first calls, one per folder: bash tools/device_job.sh place .mv1   (carry: [".mv1"]),
 #     which keeps the parts in moving/ on the machine; then every later call puts the run back before its command
 #     (exit status 4, nothing run, where parts are missing or corrupt), and the study resumes it.
 if [ "$1" = place ]; then
   [ $# -eq 2 ] || { echo "usage: bash tools/device_job.sh place <folder of parts>" >&2; exit 2; }
   exec python3 "$(dirname "$0")/move_runs.py" place "$2" moving
+fi
+if [ "$1" = send ]; then
+  [ $# -eq 1 ] || { echo "usage: bash tools/device_job.sh send" >&2; exit 2; }
+  [ -n "$OUT" ] || { echo "\$OUT is not set: run this through the device tool" >&2; exit 2; }
+  [ -d outgoing ] || { echo "[device_job] send: no outgoing/ here: nothing was packed on this machine (a fresh" \
+                         "machine: the one that packed the run went back, and its parts with it)" >&2; exit 3; }
+  exec python3 "$(dirname "$0")/move_runs.py" send outgoing "$OUT"
 fi
 continuing=0
 [ "$1" = --continue ] && { continuing=1; shift; }
@@ -117,10 +126,11 @@ rc=${PIPESTATUS[0]}
 [ $rc -eq 124 ] && echo "[device_job] $name: interrupted after $limit s of the call (DEVICE_JOB_LIMIT_S)"
 dirs=$(ls -d runs/studies/* runs/* 2>/dev/null | grep -vx runs/studies | paste -sd, -)   # a study's runs: <study>/<run>
 [ -n "$dirs" ] && python3 -m experiments.collect "runs=[$dirs]" out="$OUT/$name-runs.tar.gz" 2>&1 | tail -1
+[ "${DEVICE_JOB_SAVE_XLA:-0}" = 1 ] && python3 tools/xla_cache.py pack "$MJX_MORPH_XLA_CACHE" "$OUT/xla-cache.tar.gz"
 for run in ${DEVICE_JOB_MOVE_OUT:-}; do   # an unfinished run to move (above): its newest checkpoint in 15-MiB parts
   move=$(python3 tools/move_runs.py name "$run") &&
-    python3 -m experiments.collect "runs=[$run]" out="$OUT/$move" checkpoint=true part_mb=15 2>&1 | tail -1
+    python3 -m experiments.collect "runs=[$run]" out="outgoing/$move" checkpoint=true part_mb=15 2>&1 | tail -1
 done
-[ "${DEVICE_JOB_SAVE_XLA:-0}" = 1 ] && python3 tools/xla_cache.py pack "$MJX_MORPH_XLA_CACHE" "$OUT/xla-cache.tar.gz"
+[ -n "${DEVICE_JOB_MOVE_OUT:-}" ] && python3 tools/move_runs.py send outgoing "$OUT"   # the rest: `send` calls
 echo "[device_job] $name: exit status $rc"
 exit $rc

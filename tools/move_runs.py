@@ -1,17 +1,21 @@
 """Move an unfinished run from one lent GPU machine to the next, across sessions (tools/device_job.sh).
 
 A one-GPU lease trains one run of ~18 M steps with its evaluations (~1300-1400 s of its 1800) and the rest bought
-nothing. With a move, the rest starts the next run: the lease's last call trains it until its limit, and
-`DEVICE_JOB_MOVE_OUT=<run dir>` packs the run's newest checkpoint into 15-MiB parts that come back with the call
-(`experiments.collect checkpoint=true`); here they wait in git-ignored folders of at most two parts each (`stage`),
-the next lease's first calls carry one folder each onto the machine (`place`, ~30 MiB beside the ~27 MiB checkout
-of the 64 MiB a call takes), and its training call puts the run back (`assemble`, in device_job.sh before the
-command), whose study then resumes it exactly. Only feed-forward models fit: MetaMorph's whole train state is
-41 MiB (3 parts), ModuMorph's 63 MiB (5, at the 64 MiB a call brings back), R-MeMo's 143 MiB and R-MoMo's 166 MiB
-(their burn-in tails and recurrent states).
+nothing; a run of the paper's 100 M steps outlasts any lease. With a move, a run goes on in the next session: a
+lease's last call trains it until its limit, and `DEVICE_JOB_MOVE_OUT=<run dir>` packs the run's newest checkpoint
+into 15-MiB parts in outgoing/ on the machine (`experiments.collect checkpoint=true`) and sends what fits of them
+back with the call (`send`: a call brings back at most 8 files and 64 MiB); each later call of
+`bash tools/device_job.sh send` sends the next four. Here they wait in git-ignored folders of at most two parts
+each (`stage`, which first checks that each run's parts are all there), the next lease's first calls carry one
+folder each onto the machine (`place`, ~30 MiB beside the ~25 MiB checkout of the 64 MiB a call takes), and its
+training call puts the run back (`assemble`, in device_job.sh before the command), whose study then resumes it
+exactly. Whole train states: MetaMorph 41 MiB (3 parts), ModuMorph 63 MiB (5), R-MeMo 143 MiB (10) and R-MoMo
+166 MiB (12; their burn-in tails and recurrent states): a move out takes the packing call and up to three `send`
+calls, a move in one `place` call per two parts.
 
     python3 tools/move_runs.py name runs/studies/paper/ft-metamorph-main-s9     # move.paper.ft-metamorph-main-s9.tar.gz
-    python3 tools/move_runs.py stage <files_at> .mv      # here: parts into .mv1/, .mv2/, ... (two each)
+    python3 tools/move_runs.py send outgoing $OUT        # there: the next parts that fit into $OUT, the rest kept
+    python3 tools/move_runs.py stage <files_at> [<files_at> ...] .mv      # here: parts into .mv1/, .mv2/ (two each)
     python3 tools/move_runs.py place .mv1 moving         # there (device_job.sh place .mv1): kept on the machine
     python3 tools/move_runs.py assemble moving runs/studies     # there, before a command: the runs put back
 
@@ -24,11 +28,14 @@ import re
 import shutil
 import sys
 import tarfile
+import zlib
 from pathlib import Path
 
 #: a part of a moved run: move.<study>.<run>.tar.gz.<3 digits> (study and run names hold no dots)
 PART = re.compile(r"^move\.(?P<study>[A-Za-z0-9_-]+)\.(?P<run>[A-Za-z0-9_-]+)\.tar\.gz\.(?P<index>\d{3})$")
 PARTS_PER_FOLDER = 2        # 2 x 15 MiB beside the checkout, within the 64 MiB a call carries
+#: what one call brings back from $OUT (the device tool's limits), less a margin of 1 MiB
+OUT_MIB, OUT_FILES, OUT_MARGIN_MIB = 64.0, 8, 1.0
 
 
 class MoveError(ValueError):
@@ -44,39 +51,92 @@ def archive_name(run_dir: str | Path) -> str:
     return name
 
 
-def parts_in(folder: Path) -> dict[tuple[str, str], list[Path]]:
-    """The parts in `folder` by (study, run), in order; MoveError where one's numbers are not 000, 001, ... without
-    a gap (a lost part: the last one's loss only the archive's end can tell)."""
+def parts_in(folder: Path | list[Path]) -> dict[tuple[str, str], list[Path]]:
+    """The parts in `folder` (or in several folders) by (study, run), in order; MoveError where one's numbers are
+    not 000, 001, ... without a gap (a lost part: the last one's loss only the archive's end can tell,
+    `check_complete`), or where one part is in two folders with other bytes."""
+    folders = folder if isinstance(folder, list) else [folder]
     found: dict[tuple[str, str], dict[int, Path]] = {}
-    for p in sorted(folder.iterdir()) if folder.is_dir() else []:
-        m = PART.match(p.name)
-        if m:
-            found.setdefault((m["study"], m["run"]), {})[int(m["index"])] = p
+    for f in folders:
+        for p in sorted(f.iterdir()) if f.is_dir() else []:
+            m = PART.match(p.name)
+            if not m:
+                continue
+            seen = found.setdefault((m["study"], m["run"]), {}).setdefault(int(m["index"]), p)
+            if seen != p and seen.read_bytes() != p.read_bytes():
+                raise MoveError(f"{p.name}: in {seen.parent} and {f} with other bytes; which one came back whole "
+                                "cannot be told")
     out = {}
     for key, by_index in found.items():
         missing = sorted(set(range(max(by_index) + 1)) - set(by_index))
         if missing:
-            raise MoveError(f"{folder}: move.{key[0]}.{key[1]}.tar.gz lacks part(s) "
+            raise MoveError(f"{', '.join(map(str, folders))}: move.{key[0]}.{key[1]}.tar.gz lacks part(s) "
                             f"{', '.join(f'{i:03d}' for i in missing)}; it cannot be put back")
         out[key] = [by_index[i] for i in sorted(by_index)]
     return out
 
 
-def stage(source: Path, prefix: str) -> list[Path]:
-    """Copy the parts of `source` (a call's files) into folders <prefix>1, <prefix>2, ... of at most
-    PARTS_PER_FOLDER parts each, one folder per call that carries them; returns the folders."""
-    parts = [p for ps in parts_in(source).values() for p in ps]
-    if not parts:
-        raise MoveError(f"{source}: no parts of a moved run (move.<study>.<run>.tar.gz.NNN)")
-    folders = []
-    for i in range(0, len(parts), PARTS_PER_FOLDER):
-        folder = Path(f"{prefix}{len(folders) + 1}")
+def send(outgoing: Path, out: Path, room_mib: float | None = None, files: int | None = None
+         ) -> tuple[list[Path], list[Path]]:
+    """Move the parts waiting in `outgoing` (on the GPU machine) into `out` ($OUT), in order, while they fit beside
+    what `out` holds already within `room_mib` MiB and `files` files, by default what a call brings back (OUT_MIB
+    less a margin, OUT_FILES). Returns (sent, left)."""
+    def order(p: Path):                 # the parts sent before are gone from `outgoing`: no gap check here
+        m = PART.match(p.name)
+        return m["study"], m["run"], int(m["index"])
+    waiting = sorted((p for p in outgoing.iterdir() if PART.match(p.name)), key=order) if outgoing.is_dir() else []
+    there = [p for p in out.rglob("*") if p.is_file()] if out.is_dir() else []
+    room = (OUT_MIB - OUT_MARGIN_MIB if room_mib is None else room_mib) * 2 ** 20 - sum(p.stat().st_size
+                                                                                        for p in there)
+    slots = (OUT_FILES if files is None else files) - len(there)
+    sent = []
+    for p in waiting:
+        size = p.stat().st_size
+        if size > room or slots < 1:
+            break                       # in order: a later part never goes before an earlier one
+        out.mkdir(parents=True, exist_ok=True)
+        shutil.move(str(p), out / p.name)
+        sent.append(out / p.name)
+        room, slots = room - size, slots - 1
+    return sent, waiting[len(sent):]
+
+
+def check_complete(key: tuple[str, str], parts: list[Path]) -> None:
+    """Read a run's parts through to the archive's end: MoveError where one is missing or corrupt (the last one's
+    loss shows only there)."""
+    try:
+        with tarfile.open(fileobj=io.BytesIO(b"".join(p.read_bytes() for p in parts)), mode="r:gz") as tar:
+            for _ in tar:
+                pass
+    except (tarfile.TarError, EOFError, OSError, zlib.error) as e:
+        raise MoveError(f"move.{key[0]}.{key[1]}.tar.gz: its {len(parts)} part(s) here end before the archive does "
+                        f"({type(e).__name__}): a part is missing or corrupt. The last ones may still wait on the "
+                        "machine that packed them (bash tools/device_job.sh send); nothing was staged") from None
+
+
+def stage(sources: Path | list[Path], prefix: str) -> list[Path]:
+    """Copy the parts of `sources` (the files of the calls that brought them back) into folders <prefix>1,
+    <prefix>2, ... of at most PARTS_PER_FOLDER parts each, one folder per call that carries them; returns the
+    folders. Each run's parts must be all there (`parts_in`, `check_complete`); else MoveError, and nothing is
+    staged."""
+    sources = [sources] if isinstance(sources, Path) else list(sources)
+    for source in sources:
+        if not source.is_dir():
+            raise MoveError(f"{source}: not a folder of a call's files")
+    runs = parts_in(sources)
+    if not runs:
+        raise MoveError(f"{', '.join(map(str, sources))}: no parts of a moved run (move.<study>.<run>.tar.gz.NNN)")
+    for key, ps in runs.items():
+        check_complete(key, ps)
+    parts = [p for ps in runs.values() for p in ps]
+    folders = [Path(f"{prefix}{k + 1}") for k in range(-(-len(parts) // PARTS_PER_FOLDER))]
+    for folder in folders:
         if folder.exists():
-            raise MoveError(f"{folder} exists: place or remove the parts staged before")
+            raise MoveError(f"{folder} exists: place or remove the parts staged before; nothing was staged")
+    for k, folder in enumerate(folders):
         folder.mkdir(parents=True)
-        for p in parts[i:i + PARTS_PER_FOLDER]:
+        for p in parts[k * PARTS_PER_FOLDER:(k + 1) * PARTS_PER_FOLDER]:
             shutil.copyfile(p, folder / p.name)
-        folders.append(folder)
     return folders
 
 
@@ -115,7 +175,7 @@ def assemble(moving: Path, studies: Path) -> list[Path]:
                         raise MoveError(f"{label}: expected the files of {run}/ only, found {strays[:3] or 'nothing'}")
                     # the data filter where this Python has it (3.11.4+); the check above keeps to <run>/ either way
                     tar.extractall(tmp, **({"filter": "data"} if hasattr(tarfile, "data_filter") else {}))
-            except (tarfile.TarError, EOFError, OSError) as e:
+            except (tarfile.TarError, EOFError, OSError, zlib.error) as e:
                 raise MoveError(f"{label}: incomplete or corrupt ({type(e).__name__}: {e}); a lost last part looks "
                                 "so") from None
             (tmp / run).rename(target)
@@ -131,11 +191,24 @@ def main(argv: list[str]) -> int:
     try:
         if len(argv) == 2 and argv[0] == "name":
             print(archive_name(argv[1]))
-        elif len(argv) == 3 and argv[0] == "stage":
-            for folder in stage(Path(argv[1]), argv[2]):
+        elif len(argv) >= 3 and argv[0] == "stage":
+            for folder in stage([Path(a) for a in argv[1:-1]], argv[-1]):
                 mib = sum(p.stat().st_size for p in folder.iterdir()) / 2 ** 20
                 print(f"[move_runs] {folder}: {len(list(folder.iterdir()))} parts, {mib:.1f} MiB: carry it in one call"
                       f" (carry: [\"{folder}\"]) of `bash tools/device_job.sh place {folder}`")
+        elif len(argv) in (3, 5) and argv[0] == "send":
+            sent, left = send(Path(argv[1]), Path(argv[2]), *((float(argv[3]), int(argv[4])) if len(argv) == 5
+                                                               else ()))
+            mib = sum(p.stat().st_size for p in sent) / 2 ** 20
+            print(f"[move_runs] sent {len(sent)} part(s), {mib:.1f} MiB"
+                  + (f": {sent[0].name} ... {sent[-1].name}" if sent else ""))
+            if left:
+                per_call = int(min(OUT_FILES, (OUT_MIB - OUT_MARGIN_MIB) // 15))
+                calls = -(-len(left) // per_call)
+                print(f"[move_runs] {len(left)} part(s) left in {argv[1]}/ on this machine: {calls} more call(s) of "
+                      f"`bash tools/device_job.sh send` bring them back (up to {per_call} a call) before it goes back")
+            else:
+                print(f"[move_runs] no part left in {argv[1]}/")
         elif len(argv) == 3 and argv[0] == "place":
             n = place(Path(argv[1]), Path(argv[2]))
             kept = sorted(p.name for p in Path(argv[2]).iterdir())
@@ -145,8 +218,9 @@ def main(argv: list[str]) -> int:
                 print(f"[move_runs] moved in: {run} (its study resumes it)")
         else:
             print(__doc__.split("\n\n")[2], file=sys.stderr)
-            print("usage: move_runs.py name <run dir> | stage <folder> <prefix> | place <folder> <moving> | "
-                  "assemble <moving> <studies>", file=sys.stderr)
+            print("usage: move_runs.py name <run dir> | send <outgoing> <out> [<room MiB> <files>] | "
+                  "stage <folder> [<folder> ...] <prefix> | place <folder> <moving> | assemble <moving> <studies>",
+                  file=sys.stderr)
             return 2
     except MoveError as e:
         print(f"[move_runs] error: {e}", file=sys.stderr)
