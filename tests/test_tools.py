@@ -318,6 +318,55 @@ def test_a_move_sends_what_fits_back_and_the_rest_call_by_call(tmp_path):
     assert r.returncode == 4 and "with other bytes" in r.stderr and not (tmp_path / ".mvx1").exists()
 
 
+def test_the_move_call_packs_on_the_machine_and_sends_back_what_fits(tmp_path):
+    """device_job.sh's last steps as a GPU call runs them (wheels installed, the command, the runs' artefacts, the
+    cache, then DEVICE_JOB_MOVE_OUT): the run's checkpoint is packed into outgoing/ on the machine, the first parts
+    come back in $OUT beside the log and the runs within a call's 8 files, the rest wait for `send` calls, and the
+    parts of both calls put the run back here byte for byte."""
+    import os
+    import sys
+    import zipfile
+    move_runs = load_tool("move_runs")
+    gpu = tmp_path / "gpu"
+    (gpu / ".whl").mkdir(parents=True)
+    with zipfile.ZipFile(gpu / ".whl" / "stand_in-0.0.0-py3-none-any.whl", "w") as whl:    # a wheel pip installs
+        whl.writestr("stand_in-0.0.0.dist-info/METADATA", "Metadata-Version: 2.1\nName: stand-in\nVersion: 0.0.0\n")
+        whl.writestr("stand_in-0.0.0.dist-info/WHEEL",
+                     "Wheel-Version: 1.0\nGenerator: test\nRoot-Is-Purelib: true\nTag: py3-none-any\n")
+        whl.writestr("stand_in-0.0.0.dist-info/RECORD", "stand_in-0.0.0.dist-info/METADATA,,\n"
+                     "stand_in-0.0.0.dist-info/WHEEL,,\nstand_in-0.0.0.dist-info/RECORD,,\n")
+    (gpu / "tools").symlink_to(SCRIPT.parent)
+    run = gpu / "runs" / "studies" / "paper" / "ft-rmemo-main-s9"
+    (run / "checkpoints" / "65").mkdir(parents=True)
+    (run / "config.yaml").write_text("arch: rmemo\nseed: 9\n")
+    (run / "metrics.csv").write_text("iteration\n65\n")
+    blob = os.urandom(7 * 15 * 2 ** 20 + 2 ** 20)                    # 8 parts of 15 MiB: more than one call's files
+    (run / "checkpoints" / "65" / "data").write_bytes(blob)
+    out1, out2 = tmp_path / "out1", tmp_path / "out2"
+    out1.mkdir()
+    out2.mkdir()
+    env = {"PATH": f"{Path(sys.executable).parent}:/usr/bin:/bin", "DEVICE_JOB_SITE": str(tmp_path / "site"),
+           "HOME": str(tmp_path), "DEVICE_JOB_MOVE_OUT": "runs/studies/paper/ft-rmemo-main-s9"}
+    r = job("zs", "echo", "trained", cwd=gpu, out=out1, **env)
+    assert r.returncode == 0 and "trained" in (out1 / "zs.log").read_text(), r.stdout + r.stderr
+    name = move_runs.archive_name("runs/studies/paper/ft-rmemo-main-s9")
+    back1 = sorted(p.name for p in out1.iterdir() if p.name.startswith(name))
+    assert back1 == [f"{name}.{i:03d}" for i in range(4)]             # 4 of 8: 60 MiB beside the log and the runs
+    assert len(list(out1.iterdir())) <= 8 and sum(p.stat().st_size for p in out1.iterdir()) <= 64 * 2 ** 20
+    assert "4 part(s) left in outgoing/" in r.stdout and "1 more call(s)" in r.stdout
+    r = job("send", cwd=gpu, out=out2, **env)
+    assert r.returncode == 0 and "sent 4 part(s)" in r.stdout and "no part left" in r.stdout, r.stdout + r.stderr
+    here = tmp_path / "here"
+    here.mkdir()
+    folders = move_runs.stage([out1, out2], str(here / ".mv"))
+    assert len(folders) == 4
+    moving = here / "moving"
+    for f in folders:
+        move_runs.place(f, moving)
+    [back] = move_runs.assemble(moving, here / "runs" / "studies")
+    assert (back / "checkpoints" / "65" / "data").read_bytes() == blob
+
+
 def test_per_gpu_gives_each_command_its_gpu_and_ctrl_c_and_waits_for_all(tmp_path):
     """tools/per_gpu.sh: command k sees CUDA_VISIBLE_DEVICES=k, its lines come prefixed [gpu<k>]; Ctrl-C to the
     process group (device_job.sh's `timeout -s INT` at its time limit) reaches every command, which can still save,
