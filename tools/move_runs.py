@@ -86,8 +86,8 @@ def send(outgoing: Path, out: Path, room_mib: float | None = None, files: int | 
         return m["study"], m["run"], int(m["index"])
     waiting = sorted((p for p in outgoing.iterdir() if PART.match(p.name)), key=order) if outgoing.is_dir() else []
     there = [p for p in out.rglob("*") if p.is_file()] if out.is_dir() else []
-    room = (OUT_MIB - OUT_MARGIN_MIB if room_mib is None else room_mib) * 2 ** 20 - sum(p.stat().st_size
-                                                                                        for p in there)
+    room_mib = OUT_MIB - OUT_MARGIN_MIB if room_mib is None else room_mib
+    room = room_mib * 2 ** 20 - sum(p.stat().st_size for p in there)
     slots = (OUT_FILES if files is None else files) - len(there)
     sent = []
     for p in waiting:
@@ -197,8 +197,8 @@ def main(argv: list[str]) -> int:
                 print(f"[move_runs] {folder}: {len(list(folder.iterdir()))} parts, {mib:.1f} MiB: carry it in one call"
                       f" (carry: [\"{folder}\"]) of `bash tools/device_job.sh place {folder}`")
         elif len(argv) in (3, 5) and argv[0] == "send":
-            sent, left = send(Path(argv[1]), Path(argv[2]), *((float(argv[3]), int(argv[4])) if len(argv) == 5
-                                                               else ()))
+            limits = (float(argv[3]), int(argv[4])) if len(argv) == 5 else ()
+            sent, left = send(Path(argv[1]), Path(argv[2]), *limits)
             mib = sum(p.stat().st_size for p in sent) / 2 ** 20
             print(f"[move_runs] sent {len(sent)} part(s), {mib:.1f} MiB"
                   + (f": {sent[0].name} ... {sent[-1].name}" if sent else ""))
