@@ -42,6 +42,12 @@ class MoveError(ValueError):
     pass
 
 
+def part_key(p: Path) -> tuple[str, str, int] | None:
+    """(study, run, index) of a part's file name; None for any other file."""
+    m = PART.match(p.name)
+    return (m["study"], m["run"], int(m["index"])) if m else None
+
+
 def archive_name(run_dir: str | Path) -> str:
     """The archive a run directory runs/studies/<study>/<run> moves in (experiments.collect's `out`)."""
     p = Path(run_dir)
@@ -59,10 +65,10 @@ def parts_in(folder: Path | list[Path]) -> dict[tuple[str, str], list[Path]]:
     found: dict[tuple[str, str], dict[int, Path]] = {}
     for f in folders:
         for p in sorted(f.iterdir()) if f.is_dir() else []:
-            m = PART.match(p.name)
-            if not m:
+            key = part_key(p)
+            if key is None:
                 continue
-            seen = found.setdefault((m["study"], m["run"]), {}).setdefault(int(m["index"]), p)
+            seen = found.setdefault(key[:2], {}).setdefault(key[2], p)
             if seen != p and seen.read_bytes() != p.read_bytes():
                 raise MoveError(f"{p.name}: in {seen.parent} and {f} with other bytes; which one came back whole "
                                 "cannot be told")
@@ -81,10 +87,8 @@ def send(outgoing: Path, out: Path, room_mib: float | None = None, files: int | 
     """Move the parts waiting in `outgoing` (on the GPU machine) into `out` ($OUT), in order, while they fit beside
     what `out` holds already within `room_mib` MiB and `files` files, by default what a call brings back (OUT_MIB
     less a margin, OUT_FILES). Returns (sent, left)."""
-    def order(p: Path):                 # the parts sent before are gone from `outgoing`: no gap check here
-        m = PART.match(p.name)
-        return m["study"], m["run"], int(m["index"])
-    waiting = sorted((p for p in outgoing.iterdir() if PART.match(p.name)), key=order) if outgoing.is_dir() else []
+    # in order, without parts_in's gap check: the parts sent before are gone from `outgoing`
+    waiting = sorted((p for p in outgoing.iterdir() if part_key(p)), key=part_key) if outgoing.is_dir() else []
     there = [p for p in out.rglob("*") if p.is_file()] if out.is_dir() else []
     room_mib = OUT_MIB - OUT_MARGIN_MIB if room_mib is None else room_mib
     room = room_mib * 2 ** 20 - sum(p.stat().st_size for p in there)
@@ -143,7 +147,7 @@ def stage(sources: Path | list[Path], prefix: str) -> list[Path]:
 def place(folder: Path, moving: Path) -> int:
     """Copy the parts a call carried (`folder`) into `moving`, which stays on the machine between calls; returns
     how many."""
-    parts = [p for p in sorted(folder.iterdir()) if PART.match(p.name)] if folder.is_dir() else []
+    parts = [p for p in sorted(folder.iterdir()) if part_key(p)] if folder.is_dir() else []
     if not parts:
         raise MoveError(f"{folder}: no parts of a moved run here (carry the folder `stage` wrote)")
     moving.mkdir(parents=True, exist_ok=True)
@@ -203,7 +207,8 @@ def main(argv: list[str]) -> int:
             print(f"[move_runs] sent {len(sent)} part(s), {mib:.1f} MiB"
                   + (f": {sent[0].name} ... {sent[-1].name}" if sent else ""))
             if left:
-                per_call = int(min(OUT_FILES, (OUT_MIB - OUT_MARGIN_MIB) // 15))
+                largest = max(p.stat().st_size for p in left)
+                per_call = max(1, min(OUT_FILES, int((OUT_MIB - OUT_MARGIN_MIB) * 2 ** 20 // largest)))
                 calls = -(-len(left) // per_call)
                 print(f"[move_runs] {len(left)} part(s) left in {argv[1]}/ on this machine: {calls} more call(s) of "
                       f"`bash tools/device_job.sh send` bring them back (up to {per_call} a call) before it goes back")
