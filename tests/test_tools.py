@@ -36,6 +36,8 @@ def test_usage_and_missing_out(tmp_path):
     assert r.returncode == 2 and "usage: bash tools/device_job.sh" in r.stderr
     r = job("name", "true", cwd=tmp_path)
     assert r.returncode == 2 and "$OUT is not set" in r.stderr
+    r = job("send", cwd=tmp_path)
+    assert r.returncode == 2 and "$OUT is not set" in r.stderr
 
 
 def test_the_time_limit_leaves_room_to_stop_and_pack(tmp_path):

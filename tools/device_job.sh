@@ -69,13 +69,14 @@ fi
 #   there, the next lease's first calls, one per folder: bash tools/device_job.sh place .mv1   (carry: [".mv1"]),
 #     which keeps the parts in moving/ on the machine; then every later call puts the run back before its command
 #     (exit status 4, nothing run, where parts are missing or corrupt), and the study resumes it.
+need_out() { [ -n "$OUT" ] || { echo "\$OUT is not set: run this through the device tool" >&2; exit 2; }; }
 if [ "$1" = place ]; then
   [ $# -eq 2 ] || { echo "usage: bash tools/device_job.sh place <folder of parts>" >&2; exit 2; }
   exec python3 "$(dirname "$0")/move_runs.py" place "$2" moving
 fi
 if [ "$1" = send ]; then
   [ $# -eq 1 ] || { echo "usage: bash tools/device_job.sh send" >&2; exit 2; }
-  [ -n "$OUT" ] || { echo "\$OUT is not set: run this through the device tool" >&2; exit 2; }
+  need_out
   [ -d outgoing ] || { echo "[device_job] send: no outgoing/ here: nothing was packed on this machine (a fresh" \
                          "machine: the one that packed the run went back, and its parts with it)" >&2; exit 3; }
   exec python3 "$(dirname "$0")/move_runs.py" send outgoing "$OUT"
@@ -83,7 +84,7 @@ fi
 continuing=0
 [ "$1" = --continue ] && { continuing=1; shift; }
 [ $# -ge 2 ] || { echo "usage: bash tools/device_job.sh prepare | [--continue] <name> <command ...>" >&2; exit 2; }
-[ -n "$OUT" ] || { echo "\$OUT is not set: run this through the device tool" >&2; exit 2; }
+need_out
 name=$1; shift
 if [ -d moving ]; then          # parts that `place` kept: the moved runs back under runs/studies before the command
   python3 "$(dirname "$0")/move_runs.py" assemble moving runs/studies || exit 4
