@@ -9,9 +9,9 @@ back with the call (`send`: a call brings back at most 8 files and 64 MiB); each
 each (`stage`, which first checks that each run's parts are all there), the next lease's first calls carry one
 folder each onto the machine (`place`, ~30 MiB beside the ~25 MiB checkout of the 64 MiB a call takes), and its
 training call puts the run back (`assemble`, in device_job.sh before the command), whose study then resumes it
-exactly. Whole train states: MetaMorph 41 MiB (3 parts), ModuMorph 63 MiB (5), R-MeMo 143 MiB (10) and R-MoMo
-166 MiB (12; their burn-in tails and recurrent states): a move out takes the packing call and up to three `send`
-calls, a move in one `place` call per two parts.
+exactly. Whole train states, packed: MetaMorph 36 MiB (3 parts), R-MeMo 86 MiB (6; 143 unpacked, its burn-in tail
+and recurrent states); unpacked, ModuMorph 63 MiB (at most 5) and R-MoMo 166 MiB (at most 12): a move out takes the
+packing call and up to three `send` calls, a move in one `place` call per two parts.
 
     python3 tools/move_runs.py name runs/studies/paper/ft-metamorph-main-s9     # move.paper.ft-metamorph-main-s9.tar.gz
     python3 tools/move_runs.py send outgoing $OUT        # there: the next parts that fit into $OUT, the rest kept
