@@ -6,6 +6,7 @@ import csv
 import json
 import math
 import re
+import shutil
 import subprocess
 import sys
 import zlib
@@ -667,6 +668,44 @@ def test_the_arm_chosen_on_val_and_whether_the_seeds_separate_it(tmp_path):
     p = stats.ttest_ind(seeds[best], seeds[other], equal_var=False).pvalue
     assert float(by_arm[best]["p_two_sided"]) == pytest.approx(p)
     assert f"| ft | modumorph | {best} | 3 | {means[best]:.1f} |" in md and "**chosen**" in md
+
+
+def test_ab_arms_side_by_side_with_welch_ci_over_seeds(tmp_path):
+    """"A/B arms" (arms.csv): per architecture with two or more arms, each pair on training and on every eval set
+    both evaluated: means over seeds, the difference first - second with its 95% Welch CI and two-sided p over seeds,
+    and how many of the first arm's seeds lie inside the second's seed range; an architecture with one arm gets no
+    row, and an arm with one seed gets no CI."""
+    root = tmp_path / "runs"
+    vals: dict = {}
+    for arm, iters, returns, seeds in (("capped", 5, (400, 900), (0, 1, 2)), ("converged", 16, (700, 1500), (0, 1))):
+        for seed in seeds:
+            d, per = make_run(root, f"ft-metamorph-{arm}-s{seed}", arch="metamorph", seed=seed,
+                              evals=("test",), returns=returns)
+            cfg = yaml.safe_load((d / "config.yaml").read_text())
+            cfg["env"]["iterations"] = iters
+            (d / "config.yaml").write_text(yaml.safe_dump(cfg))
+            vals.setdefault(iters, []).append(np.mean(list(per["test"].values())))
+    make_run(root, "ft-rmemo-s0", arch="rmemo", evals=("test",))                     # one arm: no pair
+    make_run(root, "ft-rmemo-s1", arch="rmemo", seed=1, evals=("test",))
+    md = build_report([root], tmp_path / "out").read_text()
+    rows = _csv(tmp_path / "out" / "arms.csv")
+    assert {r["set"] for r in rows} == {"training", "test"}
+    assert {(r["arm_a"], r["arm_b"]) for r in rows} == {("metamorph, iterations=16", "metamorph, iterations=5")}
+    test = next(r for r in rows if r["set"] == "test")
+    a, b = np.asarray(vals[16]), np.asarray(vals[5])
+    assert (int(test["seeds_a"]), int(test["seeds_b"])) == (2, 3)
+    assert float(test["difference"]) == pytest.approx(a.mean() - b.mean())
+    ci = stats.ttest_ind(a, b, equal_var=False).confidence_interval(0.95)
+    assert float(test["ci95_low"]) == pytest.approx(ci.low) and float(test["ci95_high"]) == pytest.approx(ci.high)
+    assert float(test["p_two_sided"]) == pytest.approx(stats.ttest_ind(a, b, equal_var=False).pvalue)
+    assert int(test["a_seeds_in_b_range"]) == int(((a >= b.min()) & (a <= b.max())).sum())
+    assert "| ft | metamorph, iterations=16 − metamorph, iterations=5 | test | 2 / 3 |" in md
+    # one seed on a side: the difference without a CI or p
+    shutil.rmtree(root / "ft-metamorph-converged-s1")
+    build_report([root], tmp_path / "out1")
+    one = next(r for r in _csv(tmp_path / "out1" / "arms.csv") if r["set"] == "test")
+    assert int(one["seeds_a"]) == 1 and float(one["difference"]) == pytest.approx(vals[16][0] - b.mean())
+    assert one["ci95_low"] == one["ci95_high"] == one["p_two_sided"] == ""          # nan, written empty
 
 
 def test_rates_per_phase_are_medians_without_the_slow_iterations(tmp_path):

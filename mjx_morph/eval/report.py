@@ -40,7 +40,9 @@ them all (difference in % of the baseline, CI, verdict).
 
 A setting the paper chooses per model on the val robots (the KL threshold) is read off the arms of a study: "Chosen
 on val" gives, per task and architecture with two or more arms evaluated on val, the arm with the higher mean val
-return and whether the seeds separate it from the runner-up (Welch). "Rates per phase" gives each run's env steps/s
+return and whether the seeds separate it from the runner-up (Welch). "A/B arms" sets every pair of a study's arms
+side by side, on training and each eval set: the difference over seeds with its Welch CI and p, and how many of one
+arm's seeds lie within the other's range (a description, no verdict). "Rates per phase" gives each run's env steps/s
 (rollout, update, end to end) over the iterations that ran all epochs and over those the KL stop cut short
 (`Run.phase_rates`), the figures docs/benchmarks.md records of each lease's runs.
 
@@ -72,7 +74,7 @@ from .runs import CONTEXT_GROUPS, Run, classify, find_run_dirs, name_variants, r
 from .stats import (CLAIM_MARGIN, CLAIM_POWER, TASK_RANGES, Stat, change_stats, ci95, ci_level, claim_test,
                     common_eval_steps, eval_steps_of, furthest_mean_curve, mean_curve, normalised_or_nan,
                     repeated_seeds, robot_difference, seed_average, seed_count, seed_set_means, seed_train_means,
-                    set_stat, stat_of, welch_p_above)
+                    set_stat, stat_of, welch_ci, welch_p_above)
 
 SETS = ("train", "test", "val", "variants")
 TASK_ORDER = tuple(TASK_RANGES)
@@ -725,6 +727,68 @@ def _choice_on_val(doc: Document, ctx: ReportContext) -> None:
                        "the arms: the rule's pick is then a tie broken by noise.")
 
 
+def _arm_sides(runs_a: list[Run], runs_b: list[Run]) -> list[tuple[str, float | None, list[float], list[float]]]:
+    """(set, env steps, seed values of a, of b) for two arms: "training" at the env steps every run of both reached
+    (`seed_train_means`), and each eval set both evaluated, at the steps `common_eval_steps` picks."""
+    sides = []
+    reached = [r.final_steps for r in runs_a + runs_b]
+    if reached:
+        steps = min(reached)
+        sides.append(("training", steps, seed_train_means(runs_a, steps), seed_train_means(runs_b, steps)))
+    for tag in SETS:
+        at = common_eval_steps(runs_a, runs_b, tag)
+        if at is not None:
+            sides.append((tag, at[0], seed_set_means(at[1], tag), seed_set_means(at[2], tag)))
+    return sides
+
+
+def _arms(doc: Document, ctx: ReportContext) -> None:
+    """The arms of an A/B study side by side: for each task and architecture with two or more main groups (e.g.
+    "metamorph, iterations=16" and "metamorph, iterations=5"), every pair of arms, first minus second in the report's
+    order, on training and on each eval set both evaluated (`_arm_sides`): seeds, means over seeds, the difference
+    with its 95% Welch CI over seeds and the two-sided p, and how many of the first arm's seeds lie within the second
+    arm's seed range (issue 13's test of a fast mode: "within the seed spread"). A description with no verdict: the
+    claims section tests the paper's claims, which compare architectures, not arms."""
+    rows, md = [], []
+    for t in ctx.tasks:
+        names_of: dict[str, list[str]] = defaultdict(list)
+        for name, runs in ctx.main[t].items():
+            names_of[runs[0].arch].append(name)
+        for names in names_of.values():
+            for i, a in enumerate(names):
+                for b in names[i + 1:]:
+                    for tag, steps, va, vb in _arm_sides(ctx.main[t][a], ctx.main[t][b]):
+                        va = np.asarray([v for v in va if math.isfinite(v)])
+                        vb = np.asarray([v for v in vb if math.isfinite(v)])
+                        if not (va.size and vb.size):
+                            continue
+                        d = float(va.mean() - vb.mean())
+                        lo, hi = welch_ci(va, vb)
+                        above = welch_p_above(va, vb, 0.0)
+                        p = min(1.0, 2 * min(above, 1 - above)) if math.isfinite(above) else math.nan
+                        rel = 100 * d / abs(float(vb.mean())) if vb.mean() else math.nan
+                        inside = int(((va >= vb.min()) & (va <= vb.max())).sum())
+                        rows.append([t, a, b, tag, steps if steps is not None else math.nan, va.size, vb.size,
+                                     float(va.mean()), float(vb.mean()), d, lo, hi, rel, p, inside])
+                        md.append([t, f"{a} − {b}", tag, f"{va.size} / {vb.size}", fmt(float(va.mean())),
+                                   fmt(float(vb.mean())), _interval(d, lo, hi),
+                                   f"{rel:+.1f}%" if math.isfinite(rel) else "–", _p(p),
+                                   f"{inside} of {va.size} ({fmt(float(vb.min()))} to {fmt(float(vb.max()))})"])
+    if rows:
+        doc.table("A/B arms", "arms",
+                  ["task", "arm_a", "arm_b", "set", "env_steps", "seeds_a", "seeds_b", "mean_a", "mean_b",
+                   "difference", "ci95_low", "ci95_high", "relative_pct", "p_two_sided", "a_seeds_in_b_range"], rows,
+                  ["task", "arms (a − b)", "set", "seeds a / b", "a", "b", "difference [95% CI]", "relative", "p",
+                   "a's seeds in b's range"], md,
+                  note="per task and architecture with two or more arms (main groups told apart by a setting), each "
+                       "pair: each seed's training return (the mean episode return of the last ~5% of the "
+                       "iterations up to the env steps every run of the pair reached) or mean return over a set's "
+                       "robots (at the env steps both evaluated, as the claims take them); means over seeds, the "
+                       "difference with its 95% Welch CI over seeds (none with fewer than 2 seeds a side), the "
+                       "two-sided Welch p, and how many of a's seeds fall within b's seed range. A description: "
+                       "no verdict.")
+
+
 def _eval_claim_sides(doc: Document, task: str, main: dict[str, list[Run]], c: Claim) -> tuple:
     """(claim, set, model's seed means, baseline's, env steps evaluated (nan: the files do not say), why untested or
     None) of an eval-set claim: the evaluations at the env steps `common_eval_steps` picks; those at other steps are
@@ -956,6 +1020,7 @@ SECTIONS: tuple[tuple[str, Callable[[Document, ReportContext], None]], ...] = (
     ("Seed spread", _seed_spread),
     ("Seeds by physics", _seeds_by_physics),
     ("Chosen on val", _choice_on_val),
+    ("A/B arms", _arms),
     ("Reward per timestep", _reward_per_step),
     ("Training-set size", _train_size),
     ("Single context feature", _context_features),
