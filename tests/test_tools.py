@@ -322,9 +322,10 @@ def test_a_move_sends_what_fits_back_and_the_rest_call_by_call(tmp_path):
 
 def test_the_move_call_packs_on_the_machine_and_sends_back_what_fits(tmp_path):
     """device_job.sh's last steps as a GPU call runs them (wheels installed, the command, the runs' artefacts, the
-    cache, then DEVICE_JOB_MOVE_OUT): the run's checkpoint is packed into outgoing/ on the machine, the first parts
-    come back in $OUT beside the log and the runs within a call's 8 files, the rest wait for `send` calls, and the
-    parts of both calls put the run back here byte for byte."""
+    cache, then DEVICE_JOB_MOVE_OUT naming two runs, as a lease of several GPUs moves them): each run's checkpoint is
+    packed into outgoing/ on the machine, the first parts come back in $OUT beside the log and the runs within a
+    call's 8 files, the rest wait for `send` calls, and the parts of all calls put both runs back here byte for
+    byte."""
     import os
     import sys
     import zipfile
@@ -344,29 +345,38 @@ def test_the_move_call_packs_on_the_machine_and_sends_back_what_fits(tmp_path):
     (run / "metrics.csv").write_text("iteration\n65\n")
     blob = os.urandom(7 * 15 * 2 ** 20 + 2 ** 20)                    # 8 parts of 15 MiB: more than one call's files
     (run / "checkpoints" / "65" / "data").write_bytes(blob)
-    out1, out2 = tmp_path / "out1", tmp_path / "out2"
-    out1.mkdir()
-    out2.mkdir()
+    small = gpu / "runs" / "studies" / "paper" / "ft-metamorph-main-s9"     # a second run: one part
+    (small / "checkpoints" / "40").mkdir(parents=True)
+    (small / "config.yaml").write_text("arch: metamorph\nseed: 9\n")
+    small_blob = os.urandom(2 ** 20)
+    (small / "checkpoints" / "40" / "data").write_bytes(small_blob)
+    outs = [tmp_path / f"out{i}" for i in range(1, 4)]
+    for o in outs:
+        o.mkdir()
     env = {"PATH": f"{Path(sys.executable).parent}:/usr/bin:/bin", "DEVICE_JOB_SITE": str(tmp_path / "site"),
-           "HOME": str(tmp_path), "DEVICE_JOB_MOVE_OUT": "runs/studies/paper/ft-rmemo-main-s9"}
-    r = job("zs", "echo", "trained", cwd=gpu, out=out1, **env)
-    assert r.returncode == 0 and "trained" in (out1 / "zs.log").read_text(), r.stdout + r.stderr
-    name = move_runs.archive_name("runs/studies/paper/ft-rmemo-main-s9")
-    back1 = sorted(p.name for p in out1.iterdir() if p.name.startswith(name))
-    assert back1 == [f"{name}.{i:03d}" for i in range(4)]             # 4 of 8: 60 MiB beside the log and the runs
-    assert len(list(out1.iterdir())) <= 8 and sum(p.stat().st_size for p in out1.iterdir()) <= 64 * 2 ** 20
+           "HOME": str(tmp_path),
+           "DEVICE_JOB_MOVE_OUT": "runs/studies/paper/ft-rmemo-main-s9 runs/studies/paper/ft-metamorph-main-s9"}
+    r = job("zs", "echo", "trained", cwd=gpu, out=outs[0], **env)
+    assert r.returncode == 0 and "trained" in (outs[0] / "zs.log").read_text(), r.stdout + r.stderr
+    back1 = [p for p in outs[0].iterdir() if p.name.startswith("move.")]
+    assert len(back1) == 5                             # 5 of 9: the small run's and 60 MiB beside the log and runs
+    assert len(list(outs[0].iterdir())) <= 8 and sum(p.stat().st_size for p in outs[0].iterdir()) <= 64 * 2 ** 20
     assert "4 part(s) left in outgoing/" in r.stdout and "1 more call(s)" in r.stdout
-    r = job("send", cwd=gpu, out=out2, **env)
+    r = job("send", cwd=gpu, out=outs[1], **env)
     assert r.returncode == 0 and "sent 4 part(s)" in r.stdout and "no part left" in r.stdout, r.stdout + r.stderr
+    r = job("send", cwd=gpu, out=outs[2], **env)
+    assert r.returncode == 0 and "sent 0 part(s)" in r.stdout, r.stdout + r.stderr
     here = tmp_path / "here"
     here.mkdir()
-    folders = move_runs.stage([out1, out2], str(here / ".mv"))
-    assert len(folders) == 4
+    folders = move_runs.stage(outs, str(here / ".mv"))
+    assert sum(len(list(f.iterdir())) for f in folders) == 9
     moving = here / "moving"
     for f in folders:
         move_runs.place(f, moving)
-    [back] = move_runs.assemble(moving, here / "runs" / "studies")
-    assert (back / "checkpoints" / "65" / "data").read_bytes() == blob
+    back = {p.name: p for p in move_runs.assemble(moving, here / "runs" / "studies")}
+    assert set(back) == {"ft-rmemo-main-s9", "ft-metamorph-main-s9"}
+    assert (back["ft-rmemo-main-s9"] / "checkpoints" / "65" / "data").read_bytes() == blob
+    assert (back["ft-metamorph-main-s9"] / "checkpoints" / "40" / "data").read_bytes() == small_blob
 
 
 def test_per_gpu_gives_each_command_its_gpu_and_ctrl_c_and_waits_for_all(tmp_path):
