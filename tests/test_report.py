@@ -685,6 +685,11 @@ def test_ab_arms_side_by_side_with_welch_ci_over_seeds(tmp_path):
             cfg["env"]["iterations"] = iters
             (d / "config.yaml").write_text(yaml.safe_dump(cfg))
             vals.setdefault(iters, []).append(np.mean(list(per["test"].values())))
+    make_run(root, "ft-metamorph-capped-s3", arch="metamorph", seed=3, evals=("test",), metrics=False,
+             eval_steps=10_000)         # no learning curve: it sets no point of training (nor joins test at 40 k)
+    cfg = yaml.safe_load((root / "ft-metamorph-capped-s3" / "config.yaml").read_text())
+    cfg["env"]["iterations"] = 5
+    (root / "ft-metamorph-capped-s3" / "config.yaml").write_text(yaml.safe_dump(cfg))
     make_run(root, "ft-rmemo-s0", arch="rmemo", evals=("test",))                     # one arm: no pair
     make_run(root, "ft-rmemo-s1", arch="rmemo", seed=1, evals=("test",))
     md = build_report([root], tmp_path / "out").read_text()
@@ -700,6 +705,8 @@ def test_ab_arms_side_by_side_with_welch_ci_over_seeds(tmp_path):
     assert float(test["p_two_sided"]) == pytest.approx(stats.ttest_ind(a, b, equal_var=False).pvalue)
     assert int(test["a_seeds_in_b_range"]) == int(((a >= b.min()) & (a <= b.max())).sum())
     assert "| ft | metamorph, iterations=16 − metamorph, iterations=5 | test | 2 / 3 |" in md
+    training = next(r for r in rows if r["set"] == "training")
+    assert (int(training["seeds_a"]), int(training["seeds_b"])) == (2, 3) and float(training["env_steps"]) == 40_000
     # one seed on a side: the difference without a CI or p
     shutil.rmtree(root / "ft-metamorph-converged-s1")
     build_report([root], tmp_path / "out1")

@@ -728,10 +728,11 @@ def _choice_on_val(doc: Document, ctx: ReportContext) -> None:
 
 
 def _arm_sides(runs_a: list[Run], runs_b: list[Run]) -> list[tuple[str, float | None, list[float], list[float]]]:
-    """(set, env steps, seed values of a, of b) for two arms: "training" at the env steps every run of both reached
-    (`seed_train_means`), and each eval set both evaluated, at the steps `common_eval_steps` picks."""
+    """(set, env steps, seed values of a, of b) for two arms: "training" at the env steps every run of both with a
+    learning curve reached (`seed_train_means`), and each eval set both evaluated, at the steps `common_eval_steps`
+    picks."""
     sides = []
-    reached = [r.final_steps for r in runs_a + runs_b]
+    reached = [r.final_steps for r in runs_a + runs_b if math.isfinite(r.final_train_return())]
     if reached:
         steps = min(reached)
         sides.append(("training", steps, seed_train_means(runs_a, steps), seed_train_means(runs_b, steps)))
