@@ -105,14 +105,23 @@ def send(outgoing: Path, out: Path, room_mib: float | None = None, files: int | 
     return sent, waiting[len(sent):]
 
 
+#: what reading a truncated or corrupt archive raises
+READ_ERRORS = (tarfile.TarError, EOFError, OSError, zlib.error)
+
+
+def open_parts(parts: list[Path]) -> tarfile.TarFile:
+    """A run's parts, in order, read as the one archive they were cut from."""
+    return tarfile.open(fileobj=io.BytesIO(b"".join(p.read_bytes() for p in parts)), mode="r:gz")
+
+
 def check_complete(key: tuple[str, str], parts: list[Path]) -> None:
     """Read a run's parts through to the archive's end: MoveError where one is missing or corrupt (the last one's
     loss shows only there)."""
     try:
-        with tarfile.open(fileobj=io.BytesIO(b"".join(p.read_bytes() for p in parts)), mode="r:gz") as tar:
+        with open_parts(parts) as tar:
             for _ in tar:
                 pass
-    except (tarfile.TarError, EOFError, OSError, zlib.error) as e:
+    except READ_ERRORS as e:
         raise MoveError(f"move.{key[0]}.{key[1]}.tar.gz: its {len(parts)} part(s) here end before the archive does "
                         f"({type(e).__name__}): a part is missing or corrupt. The last ones may still wait on the "
                         "machine that packed them (bash tools/device_job.sh send); nothing was staged") from None
@@ -168,10 +177,9 @@ def assemble(moving: Path, studies: Path) -> list[Path]:
             raise MoveError(f"{label}: {target} exists already; the moved run would replace it")
         tmp = studies / study / f".{run}.moving"      # extracted here first: a failure leaves nothing of the run
         shutil.rmtree(tmp, ignore_errors=True)
-        stream = io.BytesIO(b"".join(p.read_bytes() for p in parts))
         try:
             try:
-                with tarfile.open(fileobj=stream, mode="r:gz") as tar:
+                with open_parts(parts) as tar:
                     members = tar.getmembers()
                     strays = [m.name for m in members if m.name.split("/", 1)[0] != run
                               or ".." in m.name.split("/") or not (m.isfile() or m.isdir())]
@@ -179,7 +187,7 @@ def assemble(moving: Path, studies: Path) -> list[Path]:
                         raise MoveError(f"{label}: expected the files of {run}/ only, found {strays[:3] or 'nothing'}")
                     # the data filter where this Python has it (3.11.4+); the check above keeps to <run>/ either way
                     tar.extractall(tmp, **({"filter": "data"} if hasattr(tarfile, "data_filter") else {}))
-            except (tarfile.TarError, EOFError, OSError, zlib.error) as e:
+            except READ_ERRORS as e:
                 raise MoveError(f"{label}: incomplete or corrupt ({type(e).__name__}: {e}); a lost last part looks "
                                 "so") from None
             (tmp / run).rename(target)

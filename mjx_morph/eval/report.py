@@ -74,7 +74,7 @@ from .runs import CONTEXT_GROUPS, Run, classify, find_run_dirs, name_variants, r
 from .stats import (CLAIM_MARGIN, CLAIM_POWER, TASK_RANGES, Stat, change_stats, ci95, ci_level, claim_test,
                     common_eval_steps, eval_steps_of, furthest_mean_curve, mean_curve, normalised_or_nan,
                     repeated_seeds, robot_difference, seed_average, seed_count, seed_set_means, seed_train_means,
-                    set_stat, stat_of, welch_ci, welch_p_above)
+                    set_stat, stat_of, welch_ci, welch_p_two_sided)
 
 SETS = ("train", "test", "val", "variants")
 TASK_ORDER = tuple(TASK_RANGES)
@@ -705,8 +705,7 @@ def _choice_on_val(doc: Document, ctx: ReportContext) -> None:
                 continue
             order = sorted(arms, key=lambda n: -float(arms[n].mean()))
             best, second = arms[order[0]], arms[order[1]]
-            above = welch_p_above(best, second, 0.0)
-            p = min(1.0, 2 * min(above, 1 - above)) if math.isfinite(above) else math.nan
+            p = welch_p_two_sided(best, second)
             margin = float(best.mean() - second.mean())
             for n in order:
                 v, chosen = arms[n], n == order[0]
@@ -765,8 +764,7 @@ def _arms(doc: Document, ctx: ReportContext) -> None:
                             continue
                         d = float(va.mean() - vb.mean())
                         lo, hi = welch_ci(va, vb)
-                        above = welch_p_above(va, vb, 0.0)
-                        p = min(1.0, 2 * min(above, 1 - above)) if math.isfinite(above) else math.nan
+                        p = welch_p_two_sided(va, vb)
                         rel = 100 * d / abs(float(vb.mean())) if vb.mean() else math.nan
                         inside = int(((va >= vb.min()) & (va <= vb.max())).sum())
                         rows.append([t, a, b, tag, steps if steps is not None else math.nan, va.size, vb.size,

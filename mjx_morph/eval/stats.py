@@ -313,6 +313,13 @@ def welch_p_above(a: np.ndarray, b: np.ndarray, delta: float) -> float:
     return float(stats.ttest_ind(a, b + delta, equal_var=False, alternative="greater").pvalue)
 
 
+def welch_p_two_sided(a: np.ndarray, b: np.ndarray) -> float:
+    """Two-sided p-value of Welch's t for mean(a) = mean(b), from `welch_p_above` (so nan with fewer than 2 values on
+    a side, 0 or 1 when neither side has any spread)."""
+    above = welch_p_above(a, b, 0.0)
+    return min(1.0, 2 * min(above, 1 - above)) if math.isfinite(above) else float("nan")
+
+
 def seeds_for_power(a: np.ndarray, b: np.ndarray, effect: float, power: float = CLAIM_POWER,
                     level: float = 0.95) -> float:
     """Seeds per side for which a two-sided test at `level` of a difference `effect` (its distance from the bound the
