@@ -62,7 +62,8 @@ fi
 # Moving an unfinished run to the next session's machine (tools/move_runs.py; packed: MetaMorph 36 MiB, R-MeMo 86):
 #   there, in the lease's last call: DEVICE_JOB_MOVE_OUT="<run dir> ..." (runs/studies/<study>/<run>, several
 #     separated by spaces) packs each run's newest checkpoint into outgoing/move.<study>.<run>.tar.gz.000, .001,
-#     ... (15 MiB each) and sends the first parts back in $OUT, as many as fit beside the log, the runs and a cache (a call brings back at most 8 files, 64 MiB);
+#     ... (15 MiB each) and sends the first parts back in $OUT, as many as fit beside the log, the runs and a cache
+#     (a call brings back at most 8 files, 64 MiB);
 #     `bash tools/device_job.sh send` (carry nothing), a call each, sends the next ones, up to four a call;
 #   here: python3 tools/move_runs.py stage <files_at> [<files_at> ...] .mv   (folders .mv1, .mv2, ... of two parts
 #     each, once every part is here);
