@@ -58,6 +58,9 @@ def report(c: ReportConfig) -> None:
         if c.runs is not None or c.looks is not None:
             raise ValueError(f"manifest={c.manifest}: it gives the runs and the looks; drop runs= and looks=")
         m = read_manifest(c.manifest)
+        if not m.runs:
+            raise ValueError(f"{m.path}: runs: nothing pooled yet ({len(m.pending)} pending for the first look); "
+                             f"report them with runs=[...] or move them into runs at the look")
         dirs, looks = m.runs, m.looks
         print(f"[mjx_morph] {m.path}: {len(m.runs)} runs at looks {looks}; {len(m.pending)} pending for the next look "
               f"and {len(m.excluded)} excluded, neither pooled", flush=True)

@@ -17,6 +17,7 @@ import pytest
 import yaml
 from scipy import stats
 
+from experiments.report import ReportConfig, report as report_cli
 from mjx_morph.eval import plots
 from mjx_morph.eval.report import CLAIMS, Looks, build_report
 from mjx_morph.eval.runs import NotARunDir, Run, classify, find_run_dirs, name_variants, read_manifest, read_run
@@ -537,20 +538,54 @@ def test_cli_rejects_a_non_run_path(tmp_path):
     assert not (tmp_path / "o").exists()
 
 
-def test_the_claims_manifest_holds_every_paper_run_once_and_each_seed_once():
-    """results/claims.yaml (the runs of docs/results.md's claims table): every run directory of results/paper_s*/
-    stands in exactly one of its lists, so a run brought home without a decision fails here; no model's seed is
-    pooled twice, pending included (e.g. a rerun of seed 7 beside its first run); a pending run is not yet pooled."""
-    m = read_manifest(ROOT / "results" / "claims.yaml")
+def _check_manifest(name: str, runs_glob: str):
+    """Every run directory of results/<runs_glob>/ stands in exactly one list of results/<name>, so a run brought
+    home without a decision fails; no model's seed is pooled twice, pending included (e.g. a rerun of a seed beside
+    its first run); a pending run is not yet pooled. Returns the manifest."""
+    m = read_manifest(ROOT / "results" / name)
     listed = [p.resolve() for p in m.runs + m.pending + list(m.excluded)]
     assert len(listed) == len(set(listed))
-    on_file = {p.resolve() for d in sorted((ROOT / "results").glob("paper_s*")) for p in find_run_dirs([d])}
-    assert not on_file - set(listed), f"runs of results/paper_s*/ in no list of results/claims.yaml: " \
+    on_file = {p.resolve() for d in sorted((ROOT / "results").glob(runs_glob)) for p in find_run_dirs([d])}
+    assert not on_file - set(listed), f"runs of results/{runs_glob}/ in no list of results/{name}: " \
                                       f"{sorted(str(p) for p in on_file - set(listed))}"
     seeds = [(r.task, r.arch, r.seed) for r in map(read_run, m.runs + m.pending)]
     assert len(seeds) == len(set(seeds)), sorted(s for s in seeds if seeds.count(s) > 1)
-    assert m.runs and m.excluded and all(why.strip() for why in m.excluded.values())
+    assert m.runs and all(why.strip() for why in m.excluded.values())
     Looks.parse(m.looks)
+    return m
+
+
+def test_the_claims_manifest_holds_every_paper_run_once_and_each_seed_once():
+    """results/claims.yaml (the 18-20 M-step claims table of docs/results.md) holds every run of results/paper_s*/."""
+    assert _check_manifest("claims.yaml", "paper_s*").excluded
+
+
+def design_100m_violations(runs: list[Run]) -> list[str]:
+    """What breaks the 100 M-step claims' design (docs/results.md, plan item 6, fixed in session 50 before any of
+    its runs): the paper's schedule run to its end (total_steps 1e8, no stop_at), the converged solver (16
+    iterations), one precision for every run. One line per run and rule broken."""
+    bad = [f"{r.path}: {why}" for r in runs for why, broken in [
+        (f"total_steps {r.cfg.get('total_steps')}, expected 100000000", r.cfg.get("total_steps") != 100_000_000),
+        (f"stop_at {r.cfg.get('stop_at')}, expected none", r.cfg.get("stop_at") is not None),
+        (f"env.iterations {(r.cfg.get('env') or {}).get('iterations')}, expected 16",
+         (r.cfg.get("env") or {}).get("iterations") != 16)] if broken]
+    precisions = sorted({str(r.cfg.get("precision")) for r in runs})
+    return bad + ([f"precisions {precisions}: expected one for every run"] if len(precisions) > 1 else [])
+
+
+def test_the_100m_claims_manifest_holds_every_100m_run_and_only_the_design():
+    """results/claims100.yaml (the 100 M-step claims, created with the first finished run) holds every run of
+    results/paper100_s*/, and its pooled and pending runs follow the design fixed before them; the rule is seen
+    to fail on the 18-20 M runs (stopped early, the capped solver, two precisions)."""
+    capped = [read_run(p) for p in read_manifest(ROOT / "results" / "claims.yaml").runs]
+    broken = design_100m_violations(capped)
+    assert any("stop_at 2" in b for b in broken) and any("env.iterations 5," in b for b in broken)
+    assert design_100m_violations(capped[:1] + [read_run(ROOT / "results" / "ab_precision_s51" /
+                                                         "ft-modumorph-bf16-s0")])[-1].startswith("precisions")
+    if not (ROOT / "results" / "claims100.yaml").exists() and not list((ROOT / "results").glob("paper100_s*")):
+        pytest.skip("no 100 M-step run on file yet (docs/results.md, plan item 6)")
+    m = _check_manifest("claims100.yaml", "paper100_s*")
+    assert not design_100m_violations([read_run(p) for p in m.runs + m.pending])
 
 
 def test_a_manifest_names_the_file_and_entry_of_each_mistake(tmp_path):
@@ -577,10 +612,13 @@ def test_a_manifest_names_the_file_and_entry_of_each_mistake(tmp_path):
             (dict(runs=["s1/*"], excluded={"s1/ft-rmomo-s0": "why"}), r"runs\[0\] 's1/\*': .*ft-rmomo-s0 is already "
                                                                        r"reached by excluded 's1/ft-rmomo-s0'"),
             (dict(runs=["s1/*"], excluded={"s2": " "}), r"excluded 's2': say why it is left out"),
-            (dict(pending=["s1/*"]), r"m.yaml: runs: expected at least one run"),
+            (dict(excluded={"s1/*": "why"}), r"m.yaml: runs: expected at least one run, pooled \(runs\) or"),
             (dict(runs="s1/*"), r"runs: expected a list of globs")]:
         with pytest.raises(ValueError, match=message):
             manifest(**kw)
+    assert manifest(pending=["s1/*"]).runs == []          # trained before a design's first look
+    with pytest.raises(ValueError, match=r"m.yaml: runs: nothing pooled yet \(2 pending for the first look\)"):
+        report_cli(ReportConfig(manifest=str(f), out=str(tmp_path / "o")))
     f.write_text(yaml.safe_dump(dict(runs=["s1/*"])))
     p = subprocess.run([sys.executable, "-m", "experiments.report", f"manifest={f}", f"runs=[{a}]",
                         f"out={tmp_path / 'o'}"], cwd=ROOT, capture_output=True, text=True, timeout=120)

@@ -82,7 +82,8 @@ MANIFEST_KEYS = ("looks", "runs", "pending", "excluded")
 
 def read_manifest(path: str | Path) -> Manifest:
     """Read a manifest: YAML with `runs` and `pending` (lists of globs of run directories, or folders holding them,
-    relative to the manifest's folder), `looks` (as the report's `looks=`) and `excluded` ({glob: why}). Every entry
+    relative to the manifest's folder; one of them not empty), `looks` (as the report's `looks=`) and `excluded`
+    ({glob: why}). Every entry
     must match something, and no run may be reached twice (by two entries or two lists): a seed pooled twice, or
     pooled and excluded, is an error naming the file, the entry and the run."""
     path = Path(path)
@@ -132,8 +133,8 @@ def read_manifest(path: str | Path) -> Manifest:
             raise ValueError(f"{path}: excluded {entry!r}: say why it is left out")
         excluded.update({d: why for d in expand("excluded", [entry], indexed=False)})
     runs, pending = expand("runs", listed("runs")), expand("pending", listed("pending"))
-    if not runs:
-        raise ValueError(f"{path}: runs: expected at least one run")
+    if not runs and not pending:        # pending alone: runs trained before a design's first look
+        raise ValueError(f"{path}: runs: expected at least one run, pooled (runs) or waiting for a look (pending)")
     return Manifest(path, runs, data.get("looks", 1), pending, excluded)
 
 
