@@ -756,7 +756,8 @@ def test_ab_arms_side_by_side_with_welch_ci_over_seeds(tmp_path):
 def test_rates_per_phase_are_medians_without_the_slow_iterations(tmp_path):
     """"Rates per phase" (rates.csv): per run, the iterations that ran all `ppo.epochs` and those the KL stop cut
     short, each the median of rollout_sps / update_sps / sps and the mean epochs run, leaving out the iterations
-    slower than 3x the run's median wall time (the calls' first iterations, with their compilation)."""
+    slower than 3x the run's median wall time (the calls' first iterations, with their compilation); and the whole
+    run: env steps over the summed time of every iteration but each call's first, as devices.yaml's starts say."""
     d, _ = make_run(tmp_path / "runs", "ft-rmomo-s0", evals=(), metrics=False)
     cfg = yaml.safe_load((d / "config.yaml").read_text())
     cfg["ppo"] = {"epochs": 4}
@@ -773,15 +774,53 @@ def test_rates_per_phase_are_medians_without_the_slow_iterations(tmp_path):
         w = csv.DictWriter(fh, fieldnames=list(rows[0]))
         w.writeheader()
         w.writerows(rows)
+    (d / "devices.yaml").write_text(yaml.safe_dump([dict(start_iteration=0), dict(start_iteration=16)]))
     build_report([tmp_path / "runs"], tmp_path / "out")
     got = {r["phase"]: r for r in _csv(tmp_path / "out" / "rates.csv")}
-    assert set(got) == {"all epochs", "KL stop active"}
+    assert set(got) == {"all epochs", "KL stop active", "whole run"}
     for phase, full in (("all epochs", True), ("KL stop active", False)):
         sel = [r for r in rows if (r["epochs_run"] == 4) == full and r["wall_s"] < 60]
         assert int(got[phase]["iterations"]) == len(sel) and int(got[phase]["left_out"]) == 2
         for k in ("rollout_sps", "update_sps", "sps"):
             assert float(got[phase][k]) == pytest.approx(np.median([r[k] for r in sel]))
         assert float(got[phase]["mean_epochs"]) == pytest.approx(np.mean([r["epochs_run"] for r in sel]))
+    whole, kept = got["whole run"], [r for r in rows if r["iteration"] not in (1, 17)]
+    assert int(whole["iterations"]) == 28 and int(whole["left_out"]) == 2
+    assert float(whole["sps"]) == pytest.approx(1000 * 28 / sum(r["wall_s"] for r in kept))
+    for k in ("rollout_sps", "update_sps"):
+        assert float(whole[k]) == pytest.approx(28 / sum(1 / r[k] for r in kept))
+
+
+def test_health_flags_what_a_run_should_be_read_for(tmp_path):
+    """"Health" (health.csv): per run over every iteration, the first minibatch's largest |ratio - 1| and |KL|, the
+    unstable episodes, the first KL stop, the largest |value_mean|, the non-finite iterations and the physics of its
+    calls; flagged: a ratio off 1 beyond Run.RATIO_TOLERANCE, non-finite metrics, unstable episodes, two physics."""
+    rng = np.random.default_rng(1)
+    for name, sick in (("ft-rmomo-s0", False), ("ft-rmomo-s1", True)):
+        d, _ = make_run(tmp_path / "runs", name, seed=int(sick), evals=(), metrics=False)
+        rows = []
+        for it in range(1, 21):
+            rows.append({"iteration": it, "env_steps": 1000 * it, "episode_return": it, "epochs_run": 8 if it < 6
+                         else 2, "first_ratio": 1 + (rng.uniform(-1e-7, 1e-7) if not (sick and it == 9) else 2e-3),
+                         "first_kl": rng.uniform(-4e-8, 4e-8), "instabilities": 3 if sick and it == 4 else 0,
+                         "value_mean": -2.5 if it == 7 else 0.1 * it,
+                         "loss": float("nan") if sick and it == 11 else 0.5, "wall_s": 2.0, "sps": 500.0})
+        with (d / "metrics.csv").open("w", newline="") as fh:
+            w = csv.DictWriter(fh, fieldnames=list(rows[0]))
+            w.writeheader()
+            w.writerows(rows)
+        digests = ["a3c4a671dd355561", "d38de03bfa874fe9" if sick else "a3c4a671dd355561"]
+        (d / "devices.yaml").write_text(yaml.safe_dump([dict(start_iteration=0, model_digest=digests[0]),
+                                                        dict(start_iteration=12, model_digest=digests[1])]))
+    build_report([tmp_path / "runs"], tmp_path / "out")
+    ok, sick = sorted(_csv(tmp_path / "out" / "health.csv"), key=lambda r: r["seed"])
+    assert float(ok["first_ratio_off"]) <= 1e-7 and float(ok["first_kl"]) <= 4e-8 and ok["flags"] == ""
+    assert int(ok["first_kl_stop"]) == 6 and float(ok["value_max"]) == 2.5 and ok["physics"] == "a3c4a671"
+    assert float(sick["first_ratio_off"]) == pytest.approx(2e-3) and int(sick["unstable_episodes"]) == 3
+    assert int(sick["nonfinite_iterations"]) == 1 and sick["physics"] == "a3c4a671, d38de03b"
+    assert sick["flags"] == ("first-minibatch ratio off 1 by 2.0e-03; non-finite metrics in 1 iterations; "
+                             "3 unstable episodes; physics changed: a3c4a671, d38de03b")
+    assert "| ok |" in (tmp_path / "out" / "report.md").read_text()
 
 
 def test_collect_keeps_the_small_artefacts_and_rebuilds_the_report(tmp_path):

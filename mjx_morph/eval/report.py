@@ -43,8 +43,11 @@ on val" gives, per task and architecture with two or more arms evaluated on val,
 return and whether the seeds separate it from the runner-up (Welch). "A/B arms" sets every pair of a study's arms
 side by side, on training and each eval set: the difference over seeds with its Welch CI and p, and how many of one
 arm's seeds lie within the other's range (a description, no verdict). "Rates per phase" gives each run's env steps/s
-(rollout, update, end to end) over the iterations that ran all epochs and over those the KL stop cut short
-(`Run.phase_rates`), the figures docs/benchmarks.md records of each lease's runs.
+(rollout, update, end to end) over the iterations that ran all epochs, over those the KL stop cut short and over
+the whole run without its calls' compiling iterations (`Run.phase_rates`), the figures docs/benchmarks.md records of
+each lease's runs. "Health" gives each run's bookkeeping checks (`Run.health`: the first minibatch's ratio and KL
+after each rollout, unstable episodes, non-finite metrics, the physics of each call), each with a flag where a
+reader should look before trusting its returns.
 
 The report is the sections of `SECTIONS`, in order: each is a function (document, context) that adds figures
 (under its heading), tables and missing items to the `document.Document`; `build_report` reads the runs, makes the
@@ -1005,8 +1008,36 @@ def _rates_table(doc: Document, ctx: ReportContext) -> None:
                   ["run", "seed", "phase", "iterations", "rollout", "update", "end to end", "mean epochs run"], md,
                   note=f"env steps/s, medians over the iterations that ran all epochs and over those the KL stop cut "
                        f"short, leaving out iterations slower than {Run.SLOW_ITERATION:g}x the run's median wall time "
-                       f"(a call's first iteration, with its compilation; left_out in rates.csv); on the run's "
-                       f"device (runs table), so compare rates only between runs of one device.")
+                       f"(a call's first iteration, with its compilation; left_out in rates.csv); whole run: its env "
+                       f"steps over the summed time of its iterations but each call's first (devices.yaml's starts), "
+                       f"the rollout's and the update's time from their rates; on the run's device (runs table), so "
+                       f"compare rates only between runs of one device.")
+
+
+def _health_table(doc: Document, ctx: ReportContext) -> None:
+    """Each run's bookkeeping checks (`Run.health`): what a lease's runs are read for before their returns."""
+    rows, md = [], []
+    for r in ctx.runs:
+        h = r.health()
+        if h is None:
+            continue
+        physics = ", ".join(d[:8] for d in r.physics) or "–"
+        rows.append([_display(r.path), r.task, r.name, r.seed, r.iterations, h["ratio_off"], h["kl"], h["unstable"],
+                     h["first_kl_stop"], h["value_max"], h["nonfinite"], physics, "; ".join(h["flags"])])
+        md.append([f"`{_display(r.path)}`", r.seed, r.iterations, f"{h['ratio_off']:.1e}", f"{h['kl']:.1e}",
+                   "–" if h["unstable"] is None else h["unstable"], h["first_kl_stop"] or "never",
+                   fmt(h["value_max"], 2), physics, "; ".join(h["flags"]) or "ok"])
+    if rows:
+        doc.table("Health", "health",
+                  ["run", "task", "arch", "seed", "iterations", "first_ratio_off", "first_kl", "unstable_episodes",
+                   "first_kl_stop", "value_max", "nonfinite_iterations", "physics", "flags"], rows,
+                  ["run", "seed", "iterations", "first minibatch: max abs(ratio - 1)", "max abs(KL)",
+                   "unstable episodes", "first KL stop", "max abs(value)", "physics", "flags"], md,
+                  note=f"over every iteration of metrics.csv: the first minibatch after each rollout, where acting and "
+                       f"training see the same states (ratio 1 and KL 0: fp32 to ~1e-7, bf16 to ~1e-4; flagged "
+                       f"beyond {Run.RATIO_TOLERANCE:g}), the simulator's unstable episodes (reset and counted), the "
+                       f"first iteration the KL stop cut short, the largest mean value estimate, and the model "
+                       f"digests its calls recorded (devices.yaml; more than one is flagged).")
 
 
 # (heading, section) in report order; a section's figures go under "## <heading>" (the runs table under "## Runs")
@@ -1026,6 +1057,7 @@ SECTIONS: tuple[tuple[str, Callable[[Document, ReportContext], None]], ...] = (
     ("Parameters", _params_table),
     ("Compute", _compute_table),
     ("Rates", _rates_table),
+    ("Health", _health_table),
 )
 
 

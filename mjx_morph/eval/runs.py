@@ -276,13 +276,23 @@ class Run:
     #: iteration) or a checkpoint wait: left out of the phase rates
     SLOW_ITERATION = 3.0
 
+    def call_first_iterations(self) -> set[int]:
+        """The iteration each start or resume of the run ran first (devices.yaml's `start_iteration` + 1), which
+        holds that call's compilation; {1} when devices.yaml recorded none."""
+        firsts = {int(i["start_iteration"]) + 1 for i in self.invocations
+                  if isinstance(i.get("start_iteration"), int)}
+        return firsts or {1}
+
     def phase_rates(self) -> list[dict]:
         """Env steps/s per phase as the benchmark notes give them: the iterations that ran all `ppo.epochs` epochs
         (the worst case) and those the KL stop cut short (a real run's rate), each the median over its iterations of
         metrics.csv's `rollout_sps`, `update_sps` and `sps` (end to end) and the mean epochs run, leaving out the
-        iterations slower than SLOW_ITERATION x the median wall time. [] when metrics.csv lacks those columns."""
+        iterations slower than SLOW_ITERATION x the median wall time; then the whole run: its env steps over the
+        time of every iteration but each call's first (`call_first_iterations`), the rollout's and the update's time
+        taken from their rates. [] when metrics.csv lacks those columns."""
         m = self.metrics
-        if any(k not in m for k in ("rollout_sps", "update_sps", "sps", "wall_s", "epochs_run")):
+        if any(k not in m for k in ("rollout_sps", "update_sps", "sps", "wall_s", "epochs_run", "iteration",
+                                    "env_steps")):
             return []
         full = float((self.cfg.get("ppo") or {}).get("epochs", 8))
         w, epochs = m["wall_s"], m["epochs_run"]
@@ -295,7 +305,51 @@ class Run:
                             "rollout_sps": float(np.nanmedian(m["rollout_sps"][sel])),
                             "update_sps": float(np.nanmedian(m["update_sps"][sel])),
                             "sps": float(np.nanmedian(m["sps"][sel])), "epochs": float(np.nanmean(epochs[sel]))})
+        steps = np.diff(m["env_steps"], prepend=0.0)            # the env steps each iteration added
+        whole = ~np.isin(m["iteration"], sorted(self.call_first_iterations())) & np.isfinite(w) & np.isfinite(steps)
+        if whole.any():
+            n = steps[whole].sum()
+            out.append({"phase": "whole run", "iterations": int(whole.sum()), "left_out": int((~whole).sum()),
+                        "rollout_sps": float(n / (steps[whole] / m["rollout_sps"][whole]).sum()),
+                        "update_sps": float(n / (steps[whole] / m["update_sps"][whole]).sum()),
+                        "sps": float(n / w[whole].sum()), "epochs": float(np.nanmean(epochs[whole]))})
         return out
+
+    #: the first minibatch's ratio after a rollout further than this from 1 is flagged: acting and training see the
+    #: same states, so fp32 keeps it to ~1e-7 and bf16 to ~1e-4 (the two phases' matmuls round differently)
+    RATIO_TOLERANCE = 1e-3
+
+    def health(self) -> dict | None:
+        """The bookkeeping checks over the run's iterations (metrics.csv): the largest |ratio - 1| and |KL| of the
+        first minibatch after each rollout, the unstable episodes (the simulator's, reset and counted), the first
+        iteration the KL stop cut short (None: never), the largest |value_mean|, the iterations with a non-finite
+        loss, KL or value, and `flags`, what a reader should look at (empty: nothing). None without those columns."""
+        m = self.metrics
+        if any(k not in m for k in ("first_ratio", "first_kl", "epochs_run")):
+            return None
+
+        def largest(x) -> float:
+            x = np.abs(x[np.isfinite(x)])
+            return float(x.max()) if x.size else float("nan")
+
+        full = float((self.cfg.get("ppo") or {}).get("epochs", 8))
+        cut = np.flatnonzero(m["epochs_run"] < full)
+        it = m.get("iteration", np.arange(1, len(m["epochs_run"]) + 1))
+        bad = np.zeros(len(m["epochs_run"]), bool)
+        for k in ("loss", "approx_kl", "value_mean", "first_ratio"):
+            if k in m:
+                bad |= ~np.isfinite(m[k])
+        h = {"ratio_off": largest(m["first_ratio"] - 1), "kl": largest(m["first_kl"]),
+             "unstable": int(np.nansum(m["instabilities"])) if "instabilities" in m else None,
+             "first_kl_stop": int(it[cut[0]]) if cut.size else None,
+             "value_max": largest(m["value_mean"]) if "value_mean" in m else float("nan"),
+             "nonfinite": int(bad.sum())}
+        h["flags"] = [f for f, on in [
+            (f"first-minibatch ratio off 1 by {h['ratio_off']:.1e}", not h["ratio_off"] <= self.RATIO_TOLERANCE),
+            (f"non-finite metrics in {h['nonfinite']} iterations", h["nonfinite"] > 0),
+            (f"{h['unstable']} unstable episodes", bool(h["unstable"])),
+            (f"physics changed: {', '.join(d[:8] for d in self.physics)}", len(self.physics) > 1)] if on]
+        return h
 
     def wall_hours(self) -> float:
         w = self.metrics.get("wall_s")
