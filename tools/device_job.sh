@@ -59,6 +59,17 @@ if [ "$1" = fit ]; then
     python3 "$(dirname "$0")/xla_cache.py" fit $cache
   exit "${PIPESTATUS[1]}"      # fit's own (find fails where .whl is missing, which changes nothing)
 fi
+# Here, after a lease:   bash tools/device_job.sh home results/<study>_s<session> <files_at> [<files_at> ...]
+#   (the calls' folders in the order they ran): the runs of the last call that brought any into the results folder
+#   (new: nothing on file is overwritten), each call's log as call<k>.log, the newest compilation cache into .gpu/
+#   (then fit), and the runs' Health and Rates tables (tools/bring_home.py).
+if [ "$1" = home ]; then
+  [ $# -ge 3 ] || { echo "usage: bash tools/device_job.sh home <results folder> <files_at> [<files_at> ...]" >&2; exit 2; }
+  shift
+  py=python3; [ -x .venv/bin/python ] && py=.venv/bin/python
+  $py "$(dirname "$0")/bring_home.py" "$@" || exit $?
+  exec bash "$0" fit
+fi
 # Moving an unfinished run to the next session's machine (tools/move_runs.py; packed: MetaMorph 36 MiB, R-MeMo 86):
 #   there, in the lease's last call: DEVICE_JOB_MOVE_OUT="<run dir> ..." (runs/studies/<study>/<run>, several
 #     separated by spaces) packs each run's newest checkpoint into outgoing/move.<study>.<run>.tar.gz.000, .001,

@@ -1,0 +1,83 @@
+"""Here, after a lease: what its calls brought back, into results/ (through `bash tools/device_job.sh home`).
+
+    bash tools/device_job.sh home results/<study>_s<session> <files_at> [<files_at> ...]   # the calls, in order
+
+- the runs: every call packs the small artefacts of all the runs on its machine (`<name>-runs.tar.gz`), so the last
+  call that brought any holds them whole; they land in the results folder (a study's `<study>/<run>` as
+  `<folder>/<run>`; several studies' runs, or runs outside a study, under their own names);
+- each call's log (`<name>.log`) as `call<k>.log` (k: the call's place in the order given);
+- the newest compilation cache (`xla-cache.tar.gz`) into .gpu/, where the next lease's first call starts from it
+  (device_job.sh then fits it to the room the checkout leaves);
+- then the runs' "Health" and "Rates per phase" tables, from a report built in a temporary folder.
+
+The results folder must not exist yet: results already on file are never overwritten. A run moved to the next
+lease comes home with the lease that finishes it.
+"""
+from __future__ import annotations
+
+import re
+import shutil
+import subprocess
+import sys
+import tarfile
+import tempfile
+from pathlib import Path
+
+
+def bring_home(dest: Path, calls: list[Path], gpu_dir: Path | None = Path(".gpu")) -> list[str]:
+    """Copy the runs, the logs and the newest cache of `calls` (folders of the device tool's files, in the order the
+    calls ran) as the module says; returns what was done, a line each. Raises SystemExit naming the problem."""
+    if dest.exists():
+        raise SystemExit(f"{dest}: already exists; bring a lease home into a new folder (results/<study>_s<session>)")
+    for c in calls:
+        if not c.is_dir():
+            raise SystemExit(f"{c}: not a folder of a call's files (the device tool's files_at)")
+    tars = [t for c in calls for t in sorted(c.glob("*-runs.tar.gz"))]
+    if not tars:
+        raise SystemExit(f"no <name>-runs.tar.gz in {', '.join(map(str, calls))}: no run came back")
+    done = []
+    with tempfile.TemporaryDirectory() as tmp:
+        with tarfile.open(tars[-1]) as tf:
+            tf.extractall(tmp, filter="data")
+        tops = sorted(Path(tmp).iterdir())
+        one_study = len(tops) == 1 and tops[0].is_dir() and not (tops[0] / "config.yaml").exists()
+        shutil.copytree(tops[0] if one_study else Path(tmp), dest)
+    runs = sorted(p.parent.relative_to(dest) for p in dest.rglob("config.yaml"))
+    done.append(f"{len(runs)} runs from {tars[-1]} -> {dest}: {', '.join(map(str, runs))}")
+    for k, c in enumerate(calls, 1):
+        logs = sorted(c.glob("*.log"))
+        for log in logs:
+            name = f"call{k}.log" if len(logs) == 1 else f"call{k}-{log.name}"
+            shutil.copy(log, dest / name)
+            done.append(f"{log} -> {dest / name}")
+    caches = [x for c in calls for x in c.glob("xla-cache.tar.gz")]
+    if caches and gpu_dir is not None:
+        gpu_dir.mkdir(exist_ok=True)
+        shutil.copy(caches[-1], gpu_dir / "xla-cache.tar.gz")
+        done.append(f"{caches[-1]} -> {gpu_dir / 'xla-cache.tar.gz'}")
+    return done
+
+
+def report_tables(dest: Path, titles=("Rates per phase", "Health")) -> str:
+    """The named tables of a report over the runs of `dest` (built in a temporary folder), as markdown."""
+    with tempfile.TemporaryDirectory() as tmp:
+        p = subprocess.run([sys.executable, "-m", "experiments.report", f"runs=[{dest}]", f"out={tmp}"],
+                           capture_output=True, text=True)
+        if p.returncode:
+            return f"(the report failed: {p.stderr.strip().splitlines()[-1] if p.stderr.strip() else p.returncode})"
+        md = (Path(tmp) / "report.md").read_text()
+    parts = re.split(r"(?m)^(?=##+ )", md)
+    return "\n".join(s.rstrip() + "\n" for s in parts if any(s.startswith(f"### {t}\n") for t in titles))
+
+
+def main(argv: list[str]) -> None:
+    if len(argv) < 2:
+        raise SystemExit("usage: bash tools/device_job.sh home <results folder> <files_at> [<files_at> ...]")
+    dest = Path(argv[0])
+    for line in bring_home(dest, [Path(a) for a in argv[1:]]):
+        print(f"[home] {line}")
+    print(report_tables(dest))
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])
