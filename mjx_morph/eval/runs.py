@@ -83,9 +83,8 @@ MANIFEST_KEYS = ("looks", "runs", "pending", "excluded")
 def read_manifest(path: str | Path) -> Manifest:
     """Read a manifest: YAML with `runs` and `pending` (lists of globs of run directories, or folders holding them,
     relative to the manifest's folder; one of them not empty), `looks` (as the report's `looks=`) and `excluded`
-    ({glob: why}). Every entry
-    must match something, and no run may be reached twice (by two entries or two lists): a seed pooled twice, or
-    pooled and excluded, is an error naming the file, the entry and the run."""
+    ({glob: why}). Every entry must match something, and no run may be reached twice (by two entries or two lists):
+    a seed pooled twice, or pooled and excluded, is an error naming the file, the entry and the run."""
     path = Path(path)
     if not path.is_file():
         raise ValueError(f"{path}: no such manifest")
