@@ -444,8 +444,10 @@ def test_home_brings_the_last_calls_runs_each_calls_log_and_the_newest_cache(tmp
 
     calls = [call(1, {"ab/ft-rmomo-s0": 50}, cache=True), call(2, {"ab/ft-rmomo-s0": 245, "ab/ft-rmomo-s1": 245}),
              call(3, {}, cache=True)]                                  # the third: a `send` call, say, with a cache
+    (calls[2] / "move.ab.ft-rmomo-s2.tar.gz.000").write_bytes(b"part")
     dest, gpu = tmp_path / "results" / "ab_s51", tmp_path / ".gpu"
     done = home.bring_home(dest, calls, gpu)
+    assert any(line.startswith("1 parts of moved runs came too") and "move_runs.py stage" in line for line in done)
     assert sorted(p.name for p in dest.iterdir()) == ["call1.log", "call2.log", "call3.log", "ft-rmomo-s0",
                                                       "ft-rmomo-s1"]
     assert len((dest / "ft-rmomo-s0" / "metrics.csv").read_text().splitlines()) == 246      # the whole run

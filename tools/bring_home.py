@@ -11,7 +11,8 @@
 - then the runs' "Health" and "Rates per phase" tables, from a report built in a temporary folder.
 
 The results folder must not exist yet: results already on file are never overwritten. A run moved to the next
-lease comes home with the lease that finishes it.
+lease comes home with the lease that finishes it; parts of a moved run among the calls' files are named, with the
+`stage` command that keeps them for the next lease (tools/move_runs.py).
 """
 from __future__ import annotations
 
@@ -50,6 +51,10 @@ def bring_home(dest: Path, calls: list[Path], gpu_dir: Path | None = Path(".gpu"
             name = f"call{k}.log" if len(logs) == 1 else f"call{k}-{log.name}"
             shutil.copy(log, dest / name)
             done.append(f"{log} -> {dest / name}")
+    parts = [x for c in calls for x in c.glob("move.*.tar.gz.[0-9][0-9][0-9]")]
+    if parts:
+        done.append(f"{len(parts)} parts of moved runs came too: stage them for the next lease with python3 "
+                    f"tools/move_runs.py stage {' '.join(map(str, calls))} .mv")
     caches = [x for c in calls for x in c.glob("xla-cache.tar.gz")]
     if caches and gpu_dir is not None:
         gpu_dir.mkdir(exist_ok=True)
