@@ -817,9 +817,9 @@ def test_health_flags_what_a_run_should_be_read_for(tmp_path):
     assert float(ok["first_ratio_off"]) <= 1e-7 and float(ok["first_kl"]) <= 4e-8 and ok["flags"] == ""
     assert int(ok["first_kl_stop"]) == 6 and float(ok["value_max"]) == 2.5 and ok["physics"] == "a3c4a671"
     assert float(sick["first_ratio_off"]) == pytest.approx(2e-3) and int(sick["unstable_episodes"]) == 3
-    assert int(sick["nonfinite_iterations"]) == 1 and sick["physics"] == "a3c4a671, d38de03b"
+    assert int(sick["nonfinite_iterations"]) == 1 and sick["physics"] == "a3c4a671 → d38de03b"   # as the runs table
     assert sick["flags"] == ("first-minibatch ratio off 1 by 2.0e-03; non-finite metrics in 1 iterations; "
-                             "3 unstable episodes; physics changed: a3c4a671, d38de03b")
+                             "3 unstable episodes; physics changed: a3c4a671 → d38de03b")
     assert "| ok |" in (tmp_path / "out" / "report.md").read_text()
 
 

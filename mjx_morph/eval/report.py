@@ -1021,7 +1021,7 @@ def _health_table(doc: Document, ctx: ReportContext) -> None:
         h = r.health()
         if h is None:
             continue
-        physics = ", ".join(d[:8] for d in r.physics) or "–"
+        physics = _physics_label(r)
         rows.append([_display(r.path), r.task, r.name, r.seed, r.iterations, h["ratio_off"], h["kl"], h["unstable"],
                      h["first_kl_stop"], h["value_max"], h["nonfinite"], physics, "; ".join(h["flags"])])
         md.append([f"`{_display(r.path)}`", r.seed, r.iterations, f"{h['ratio_off']:.1e}", f"{h['kl']:.1e}",

@@ -347,7 +347,7 @@ class Run:
             (f"first-minibatch ratio off 1 by {h['ratio_off']:.1e}", not h["ratio_off"] <= self.RATIO_TOLERANCE),
             (f"non-finite metrics in {h['nonfinite']} iterations", h["nonfinite"] > 0),
             (f"{h['unstable']} unstable episodes", bool(h["unstable"])),
-            (f"physics changed: {', '.join(d[:8] for d in self.physics)}", len(self.physics) > 1)] if on]
+            (f"physics changed: {' → '.join(d[:8] for d in self.physics)}", len(self.physics) > 1)] if on]
         return h
 
     def wall_hours(self) -> float:
