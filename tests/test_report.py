@@ -711,8 +711,8 @@ def test_the_arm_chosen_on_val_and_whether_the_seeds_separate_it(tmp_path):
 def test_ab_arms_side_by_side_with_welch_ci_over_seeds(tmp_path):
     """"A/B arms" (arms.csv): per architecture with two or more arms, each pair on training and on every eval set
     both evaluated: means over seeds, the difference first - second with its 95% Welch CI and two-sided p over seeds,
-    and how many of the first arm's seeds lie inside the second's seed range; an architecture with one arm gets no
-    row, and an arm with one seed gets no CI."""
+    and how many of the first arm's seeds lie below, inside and above the second's seed range; an architecture with
+    one arm gets no row, and an arm with one seed gets no CI."""
     root = tmp_path / "runs"
     vals: dict = {}
     for arm, iters, returns, seeds in (("capped", 5, (400, 900), (0, 1, 2)), ("converged", 16, (700, 1500), (0, 1))):
@@ -742,6 +742,9 @@ def test_ab_arms_side_by_side_with_welch_ci_over_seeds(tmp_path):
     assert float(test["ci95_low"]) == pytest.approx(ci.low) and float(test["ci95_high"]) == pytest.approx(ci.high)
     assert float(test["p_two_sided"]) == pytest.approx(stats.ttest_ind(a, b, equal_var=False).pvalue)
     assert int(test["a_seeds_in_b_range"]) == int(((a >= b.min()) & (a <= b.max())).sum())
+    assert int(test["a_seeds_below_b_range"]) == int((a < b.min()).sum())
+    assert int(test["a_seeds_above_b_range"]) == int((a > b.max()).sum())
+    assert sum(int(test[f"a_seeds_{k}_b_range"]) for k in ("below", "in", "above")) == 2
     assert "| ft | metamorph, iterations=16 − metamorph, iterations=5 | test | 2 / 3 |" in md
     training = next(r for r in rows if r["set"] == "training")
     assert (int(training["seeds_a"]), int(training["seeds_b"])) == (2, 3) and float(training["env_steps"]) == 40_000
