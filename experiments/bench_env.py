@@ -27,7 +27,6 @@ import jax.numpy as jnp
 from mjx_morph.run import register
 from mjx_morph.sim import sampling
 from mjx_morph.sim.env import EnvConfig, make_env
-from mjx_morph.sim.supertree import group_robots
 from mjx_morph.unimal.sets import default_train_set, load_set
 from mujoco import mjx  # noqa: I001 - after mjx_morph, whose import silences MJX's missing-Warp message
 
@@ -40,7 +39,6 @@ class BenchEnvConfig:
     robots: Optional[str] = None        # robot set or path; None: unimal100/train when present, else gen/train
     robots_root: Optional[str] = None
     num_robots: Optional[int] = None    # only the first N robots of the set
-    group: Optional[str] = None         # "k/n": only group k of n topology groups (sim.supertree.group_robots)
     num_envs: int = 4096
     steps: int = 100                    # control steps per timed rollout (one jitted lax.scan)
     repeats: int = 3                    # timed rollouts; the median is reported
@@ -52,20 +50,17 @@ class BenchEnvConfig:
 register("bench_env_schema", BenchEnvConfig)
 
 
-def _robots(robots: str | None, robots_root: str | None, num_robots: int | None, group: str | None):
+def _robots(robots: str | None, robots_root: str | None, num_robots: int | None):
     name = robots or default_train_set(robots_root)
     rs = list(load_set(name, robots_root).robots)
     if num_robots:
         rs = rs[:int(num_robots)]
-    if group:
-        k, n = (int(x) for x in str(group).split("/"))
-        rs = [rs[i] for i in group_robots(rs, n)[k]]
     return name, rs
 
 
 def run_case(c: dict) -> dict:
     """One case: `c` holds the keys of BenchEnvConfig with `env` an EnvConfig."""
-    name, rs = _robots(c.get("robots"), c.get("robots_root"), c.get("num_robots"), c.get("group"))
+    name, rs = _robots(c.get("robots"), c.get("robots_root"), c.get("num_robots"))
     config = c["env"]
     print(f"[bench_env] {config.task}: building the env of {len(rs)} robots, then compiling and timing...",
           file=sys.stderr, flush=True)
@@ -133,7 +128,7 @@ def run_case(c: dict) -> dict:
         "env": config.task, "mode": c["mode"], "robots": name, "num_robots": env.num_robots,
         "tree_bodies": env.sm.tree.num_slots, "nv": int(env.sm.mj_models[0].nv), "num_envs": n, "steps": steps,
         "solver_iterations": config.iterations, "ls_iterations": config.ls_iterations,
-        "self_collision": config.self_collision, "group": c.get("group"),
+        "self_collision": config.self_collision,
         "self_pairs": pairs.kept, "self_pair_candidates": pairs.candidates, "contacts": pairs.mjx_contacts,
         "control_steps_per_s": round(n * steps / dt, 1), "rollout_s": round(dt, 4),
         "compile_s": round(compile_s, 1), "build_s": round(build_s, 1),

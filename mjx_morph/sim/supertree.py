@@ -36,11 +36,6 @@ def _robot_shape(m: Morphology, index: int = TORSO) -> _Shape:
 
 
 @lru_cache(maxsize=None)
-def _size(t: _Shape) -> int:
-    return 1 + sum(_size(c) for c in t)
-
-
-@lru_cache(maxsize=None)
 def _common(a: _Shape, b: _Shape) -> int:
     """Number of nodes of the largest common rooted subtree of a and b (roots matched to each other)."""
     if not a or not b:
@@ -172,26 +167,3 @@ def build_shared_tree(robots: Sequence[Morphology], tries: int = 16, seed: int =
             best = t
     best.check(robots)
     return best
-
-
-def group_robots(robots: Sequence[Morphology], num_groups: int) -> list[list[int]]:
-    """Split a set into `num_groups` groups of (nearly) equal size whose shared trees are small: robots, largest
-    first, go to the group whose tree grows least by them (|robot| - largest common subtree). One stacked model
-    per group gives smaller trees, hence faster physics (docs/benchmarks.md)."""
-    n = len(robots)
-    cap = -(-n // num_groups)
-    order = sorted(range(n), key=lambda i: (-robots[i].num_limbs, -robots[i].tree_depth, i))
-    roots = [_Node(children=[]) for _ in range(num_groups)]
-    groups: list[list[int]] = [[] for _ in range(num_groups)]
-    for i in order:
-        shape = _robot_shape(robots[i])
-        best, cost = None, None
-        for g in range(num_groups):
-            if len(groups[g]) >= cap:
-                continue
-            c = _size(shape) - (_common(roots[g].shape(), shape) if groups[g] else 0)
-            if cost is None or c < cost:
-                best, cost = g, c
-        _merge(roots[best], robots[i], TORSO, {})
-        groups[best].append(i)
-    return [sorted(g) for g in groups]
