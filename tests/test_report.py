@@ -745,6 +745,14 @@ def test_ab_arms_side_by_side_with_welch_ci_over_seeds(tmp_path):
     assert int(test["a_seeds_below_b_range"]) == int((a < b.min()).sum())
     assert int(test["a_seeds_above_b_range"]) == int((a > b.max()).sum())
     assert sum(int(test[f"a_seeds_{k}_b_range"]) for k in ("below", "in", "above")) == 2
+    # non-inferiority, the training claims' test: H0 mean(a) - mean(b) <= -5% of |mean(b)|, and the seeds a side
+    # that a two-sided 95% test of the distance from that bound would need for 80% power (normal approximation)
+    m = 0.05 * abs(b.mean())
+    want = stats.ttest_ind(a, b - m, equal_var=False, alternative="greater").pvalue
+    assert float(test["p_a_not_worse"]) == pytest.approx(want)
+    z = stats.norm.ppf(0.975) + stats.norm.ppf(0.8)
+    n = np.ceil(z ** 2 * (a.var(ddof=1) + b.var(ddof=1)) / (a.mean() - b.mean() + m) ** 2)
+    assert float(test["seeds_for_not_worse"]) == n
     assert "| ft | metamorph, iterations=16 − metamorph, iterations=5 | test | 2 / 3 |" in md
     training = next(r for r in rows if r["set"] == "training")
     assert (int(training["seeds_a"]), int(training["seeds_b"])) == (2, 3) and float(training["env_steps"]) == 40_000
@@ -754,6 +762,7 @@ def test_ab_arms_side_by_side_with_welch_ci_over_seeds(tmp_path):
     one = next(r for r in _csv(tmp_path / "out1" / "arms.csv") if r["set"] == "test")
     assert int(one["seeds_a"]) == 1 and float(one["difference"]) == pytest.approx(vals[16][0] - b.mean())
     assert one["ci95_low"] == one["ci95_high"] == one["p_two_sided"] == ""          # nan, written empty
+    assert one["p_a_not_worse"] == one["seeds_for_not_worse"] == ""
 
 
 def test_rates_per_phase_are_medians_without_the_slow_iterations(tmp_path):

@@ -77,7 +77,7 @@ from .runs import CONTEXT_GROUPS, Run, classify, find_run_dirs, name_variants, r
 from .stats import (CLAIM_MARGIN, CLAIM_POWER, TASK_RANGES, Stat, change_stats, ci95, ci_level, claim_test,
                     common_eval_steps, eval_steps_of, furthest_mean_curve, mean_curve, normalised_or_nan,
                     repeated_seeds, robot_difference, seed_average, seed_count, seed_set_means, seed_train_means,
-                    set_stat, stat_of, welch_ci, welch_p_two_sided)
+                    seeds_for_power, set_stat, stat_of, welch_ci, welch_p_above, welch_p_two_sided)
 
 SETS = ("train", "test", "val", "variants")
 TASK_ORDER = tuple(TASK_RANGES)
@@ -751,8 +751,11 @@ def _arms(doc: Document, ctx: ReportContext) -> None:
     order, on training and on each eval set both evaluated (`_arm_sides`): seeds, means over seeds, the difference
     with its 95% Welch CI over seeds and the two-sided p, and how many of the first arm's seeds lie below, within and
     above the second arm's seed range (issue 13's test of a fast mode, "within the seed spread", read as "no seed
-    below it": docs/results.md, plan item 4). A description with no verdict: the claims section tests the paper's
-    claims, which compare architectures, not arms."""
+    below it": docs/results.md, plan item 4); then the non-inferiority test the claims' training claims use (the
+    first arm at least the second's mean less CLAIM_MARGIN of it: one-sided Welch p) and the seeds a side it would
+    need for CLAIM_POWER at the observed difference and spreads, which a seed-range rule cannot show at any seed
+    count. A description with no verdict: the claims section tests the paper's claims, which compare architectures,
+    not arms."""
     rows, md = [], []
     for t in ctx.tasks:
         names_of: dict[str, list[str]] = defaultdict(list)
@@ -772,20 +775,26 @@ def _arms(doc: Document, ctx: ReportContext) -> None:
                         rel = 100 * d / abs(float(vb.mean())) if vb.mean() else math.nan
                         below, above = int((va < vb.min()).sum()), int((va > vb.max()).sum())
                         inside = va.size - below - above
+                        m = CLAIM_MARGIN * abs(float(vb.mean()))       # a no worse than b - m: the "level" claims'
+                        p_level = welch_p_above(va, vb, -m)
+                        n_level = seeds_for_power(va, vb, d + m)
                         rows.append([t, a, b, tag, steps if steps is not None else math.nan, va.size, vb.size,
-                                     float(va.mean()), float(vb.mean()), d, lo, hi, rel, p, below, inside, above])
+                                     float(va.mean()), float(vb.mean()), d, lo, hi, rel, p, below, inside, above,
+                                     p_level, n_level])
                         md.append([t, f"{a} − {b}", tag, f"{va.size} / {vb.size}", fmt(float(va.mean())),
                                    fmt(float(vb.mean())), _interval(d, lo, hi),
                                    f"{rel:+.1f}%" if math.isfinite(rel) else "–", _p(p),
                                    f"{below} / {inside} / {above} of {va.size} ({fmt(float(vb.min()))} to "
-                                   f"{fmt(float(vb.max()))})"])
+                                   f"{fmt(float(vb.max()))})", _p(p_level),
+                                   f"{n_level:.0f}" if math.isfinite(n_level) else "–"])
     if rows:
         doc.table("A/B arms", "arms",
                   ["task", "arm_a", "arm_b", "set", "env_steps", "seeds_a", "seeds_b", "mean_a", "mean_b",
                    "difference", "ci95_low", "ci95_high", "relative_pct", "p_two_sided", "a_seeds_below_b_range",
-                   "a_seeds_in_b_range", "a_seeds_above_b_range"], rows,
+                   "a_seeds_in_b_range", "a_seeds_above_b_range", "p_a_not_worse", "seeds_for_not_worse"], rows,
                   ["task", "arms (a − b)", "set", "seeds a / b", "a", "b", "difference [95% CI]", "relative", "p",
-                   "a's seeds below / in / above b's range"], md,
+                   "a's seeds below / in / above b's range", f"p, a ≥ b − {CLAIM_MARGIN:.0%}",
+                   f"seeds a side for it ({CLAIM_POWER:.0%})"], md,
                   note="per task and architecture with two or more arms (main groups told apart by a setting), each "
                        "pair: each seed's training return (the mean episode return of the last ~5% of the "
                        "iterations up to the env steps every run of the pair reached) or mean return over a set's "
@@ -793,7 +802,10 @@ def _arms(doc: Document, ctx: ReportContext) -> None:
                        "difference with its 95% Welch CI over seeds (none with fewer than 2 seeds a side), the "
                        "two-sided Welch p, and how many of a's seeds fall below, within and above b's seed range "
                        "(a fast mode passes where none of its training seeds is below: docs/results.md, plan item "
-                       "4). A description: no verdict.")
+                       f"4); then the one-sided Welch p that a's mean is at least b's less {CLAIM_MARGIN:.0%} of it "
+                       "(the training claims' test: a match shown where p < 0.025) and the seeds a side that test "
+                       f"would need for {CLAIM_POWER:.0%} power at the observed difference and spreads (– where the "
+                       "data point the other way). A description: no verdict.")
 
 
 def _eval_claim_sides(doc: Document, task: str, main: dict[str, list[Run]], c: Claim) -> tuple:
