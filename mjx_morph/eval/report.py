@@ -77,7 +77,7 @@ from .runs import CONTEXT_GROUPS, Run, classify, find_run_dirs, name_variants, r
 from .stats import (CLAIM_MARGIN, CLAIM_POWER, TASK_RANGES, Stat, change_stats, ci95, ci_level, claim_test,
                     common_eval_steps, eval_steps_of, furthest_mean_curve, mean_curve, normalised_or_nan,
                     repeated_seeds, robot_difference, seed_average, seed_count, seed_set_means, seed_train_means,
-                    seeds_for_power, set_stat, stat_of, welch_ci, welch_p_above, welch_p_two_sided)
+                    set_stat, stat_of, welch_ci, welch_p_two_sided)
 
 SETS = ("train", "test", "val", "variants")
 TASK_ORDER = tuple(TASK_RANGES)
@@ -775,9 +775,8 @@ def _arms(doc: Document, ctx: ReportContext) -> None:
                         rel = 100 * d / abs(float(vb.mean())) if vb.mean() else math.nan
                         below, above = int((va < vb.min()).sum()), int((va > vb.max()).sum())
                         inside = va.size - below - above
-                        m = CLAIM_MARGIN * abs(float(vb.mean()))       # a no worse than b - m: the "level" claims'
-                        p_level = welch_p_above(va, vb, -m)
-                        n_level = seeds_for_power(va, vb, d + m)
+                        level = claim_test(va, vb, "level")          # a no worse than b less CLAIM_MARGIN of it
+                        p_level, n_level = level.p_value, level.seeds_for_power
                         rows.append([t, a, b, tag, steps if steps is not None else math.nan, va.size, vb.size,
                                      float(va.mean()), float(vb.mean()), d, lo, hi, rel, p, below, inside, above,
                                      p_level, n_level])
