@@ -17,7 +17,7 @@ set -o pipefail
 share=0
 [ "$1" = --share ] && { share=1; shift; }
 [ $# -ge 1 ] || { echo "usage: bash tools/per_gpu.sh [--share] '<command for GPU 0>' ['<command for GPU 1>' ...]" >&2; exit 2; }
-fraction=$(python3 -c "print(f'{0.9 / $#:.2f}')")
+[ $share = 1 ] && fraction=$(python3 -c "print(f'{0.9 / $#:.2f}')")     # 0.45 each for two
 default_int='import os, signal, sys; signal.signal(signal.SIGINT, signal.SIG_DFL)
 os.execvp("bash", ["bash", "-c", sys.argv[1]])'
 pids=()
