@@ -17,19 +17,16 @@ set -o pipefail
 share=0
 [ "$1" = --share ] && { share=1; shift; }
 [ $# -ge 1 ] || { echo "usage: bash tools/per_gpu.sh [--share] '<command for GPU 0>' ['<command for GPU 1>' ...]" >&2; exit 2; }
-[ $share = 1 ] && fraction=$(python3 -c "print(f'{0.9 / $#:.2f}')")     # 0.45 each for two
+[ $share = 1 ] && export XLA_PYTHON_CLIENT_MEM_FRACTION=$(python3 -c "print(f'{0.9 / $#:.2f}')")   # 0.45 each of two
 default_int='import os, signal, sys; signal.signal(signal.SIGINT, signal.SIG_DFL)
 os.execvp("bash", ["bash", "-c", sys.argv[1]])'
 pids=()
 k=0
 for cmd in "$@"; do
   # the command with Ctrl-C at its default; the prefixing sed keeps ignoring it, to pass on the last lines
-  if [ $share = 1 ]; then
-    (export CUDA_VISIBLE_DEVICES=0 XLA_PYTHON_CLIENT_MEM_FRACTION=$fraction
-     exec python3 -c "$default_int" "$cmd") 2>&1 | sed -u "s/^/[share$k] /" &
-  else
-    (export CUDA_VISIBLE_DEVICES=$k; exec python3 -c "$default_int" "$cmd") 2>&1 | sed -u "s/^/[gpu$k] /" &
-  fi
+  gpu=$k tag=gpu$k
+  [ $share = 1 ] && gpu=0 tag=share$k
+  (export CUDA_VISIBLE_DEVICES=$gpu; exec python3 -c "$default_int" "$cmd") 2>&1 | sed -u "s/^/[$tag] /" &
   pids+=($!)
   k=$((k + 1))
 done
