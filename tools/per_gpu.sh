@@ -9,24 +9,17 @@
 # checkpoints, a study waits for its runs), also where this script itself was started with it ignored (bash cannot
 # undo that: `trap - INT` does nothing then, so a one-line Python resets it before running the command), the script
 # waits for all of them, and exits with the first nonzero exit status in the order given (0 when all succeed).
-# --share puts all the commands on GPU 0 instead, as n processes, each allowed 0.9/n of its memory
-# (XLA_PYTHON_CLIENT_MEM_FRACTION; JAX would take 75% in each), lines prefixed [share<k>]: for programs too small to
-# keep the GPU busy alone (the 32-env rollout, docs/benchmarks.md, session 57); two throughput-bound runs share it no
-# faster than one (session 46).
+# Two commands sharing one GPU (two processes, which it time-slices) ran slower together than one alone, for
+# throughput-bound runs (session 46) and for 32-env rollouts (0.82-0.88x, session 58; docs/benchmarks.md): one per GPU.
 set -o pipefail
-share=0
-[ "$1" = --share ] && { share=1; shift; }
-[ $# -ge 1 ] || { echo "usage: bash tools/per_gpu.sh [--share] '<command for GPU 0>' ['<command for GPU 1>' ...]" >&2; exit 2; }
-[ $share = 1 ] && export XLA_PYTHON_CLIENT_MEM_FRACTION=$(python3 -c "print(f'{0.9 / $#:.2f}')")   # 0.45 each of two
+[ $# -ge 1 ] || { echo "usage: bash tools/per_gpu.sh '<command for GPU 0>' ['<command for GPU 1>' ...]" >&2; exit 2; }
 default_int='import os, signal, sys; signal.signal(signal.SIGINT, signal.SIG_DFL)
 os.execvp("bash", ["bash", "-c", sys.argv[1]])'
 pids=()
 k=0
 for cmd in "$@"; do
   # the command with Ctrl-C at its default; the prefixing sed keeps ignoring it, to pass on the last lines
-  gpu=$k tag=gpu$k
-  [ $share = 1 ] && gpu=0 tag=share$k
-  (export CUDA_VISIBLE_DEVICES=$gpu; exec python3 -c "$default_int" "$cmd") 2>&1 | sed -u "s/^/[$tag] /" &
+  (export CUDA_VISIBLE_DEVICES=$k; exec python3 -c "$default_int" "$cmd") 2>&1 | sed -u "s/^/[gpu$k] /" &
   pids+=($!)
   k=$((k + 1))
 done
