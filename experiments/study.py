@@ -12,6 +12,8 @@ seeds, so that one plan holds the runs each model still needs, and `stop_at_of.<
 stop_at, so that each model stops where the runs it pools with were evaluated) and `evaluate` (the sets to evaluate
 each run on, in order; `evaluate=[...]` for others, e.g. the zero-shot sets first: `evaluate=[test,variants]`).
 
+A study's name with a task after it, `paper_ft` or `paper_incline`, is that study with env=<task>.
+
 Run directories: <out>/<study>/<env>-<arch>-<run>-s<seed> (default out: runs/studies). Each run is an ordinary
 `experiments.run` run: rerunning the study resumes unfinished runs; finished ones are not retrained, and a set
 already evaluated at the run's last checkpoint (eval/<set>.json) is not evaluated again. `only=[a,b]` takes the
@@ -64,6 +66,7 @@ from mjx_morph.eval.evaluate import PrepareEvaluation, evaluate_run, evaluated, 
 from mjx_morph.run import (CONF_DIR, RunDir, compose_run_config, default_callbacks, distributed, register,
                            to_schema, train, unhealthy_reason, use_compile_cache)
 from mjx_morph.sim.env import EnvConfig
+from mjx_morph.sim.tasks import TASKS
 
 from . import cli
 
@@ -195,6 +198,22 @@ def plan(c: StudyConfig) -> list[StudyRun]:
                                          *overrides, *extra],
                                      list(sets), (arch, name), seed))
     return runs
+
+
+def study_for_task(argv: list[str]) -> list[str]:
+    """`<study>_<task>` (e.g. `paper_ft`, as issue 15 names the command) where no study file has that name: the study
+    `<study>` with `env=<task>`, the same runs in the same directories (<out>/<study>/<task>-...) as `<study>
+    env=<task>`, so either spelling resumes the other. A different env= beside it is refused."""
+    if not argv or "=" in argv[0] or argv[0].startswith("-") or (CONF_DIR / "study" / f"{argv[0]}.yaml").exists():
+        return argv
+    base, _, task = argv[0].rpartition("_")
+    if task not in TASKS or not (CONF_DIR / "study" / f"{base}.yaml").exists():
+        return argv
+    given = [a for a in argv[1:] if a.split("=")[0] == "env"]
+    if given and given != [f"env={task}"]:
+        raise ValueError(f"{argv[0]} is the study {base} on {task}, but {' '.join(given)} was given too; expected "
+                         f"one task: `{base} env=<task>` or `{base}_<task>` alone")
+    return [base, *([] if given else [f"env={task}"]), *argv[1:]]
 
 
 def share(runs: list[StudyRun], workers: int, worker: int) -> list[StudyRun]:
@@ -445,6 +464,10 @@ def main(argv=None) -> int:
     # seeds_of.<arch>=[...] and stop_at_of.<arch>=N add a key to a dict that starts empty: Hydra's `+` (the short
     # form is what users type)
     argv = [f"+{a}" if a.startswith(("seeds_of.", "stop_at_of.")) else a for a in argv]
+    try:
+        argv = study_for_task(argv)
+    except ValueError as e:
+        return cli.fail(e)
     return cli.main(lambda c: run_study(c, argv), "run_study", StudyConfig, __doc__, argv, positional="name")
 
 

@@ -114,6 +114,25 @@ def test_study_plan_passes_env_options_and_extra_overrides(capsys):
     assert study.main(["no_such_study"]) == 2 and "no study 'no_such_study'" in capsys.readouterr().err
 
 
+def test_a_study_named_with_its_task_is_that_study_on_that_task(capsys):
+    """`<study>_<task>` (issue 15's `paper_ft`) plans what `<study> env=<task>` plans, in the same run directories;
+    another env= beside it is refused, and a name whose tail is no task is still an unknown study."""
+    from experiments import study
+    plans = {}
+    for args in (["train_size_incline"], ["train_size", "env=incline"], ["train_size_incline", "env=incline"]):
+        assert study.main([*args, "archs=[metamorph]", "seeds=[1]", "dry_run=true"]) == 0
+        plans[tuple(args)] = capsys.readouterr().out
+    assert len(set(plans.values())) == 1
+    lines = plans[("train_size_incline",)].strip().splitlines()
+    assert len(lines) == 4 and all(ln.startswith("python -m experiments.run env=incline arch=metamorph seed=1 "
+                                                 "run_dir=runs/studies/train_size/incline-metamorph-") for ln in lines)
+    assert study.main(["train_size_incline", "env=ft", "dry_run=true"]) == 2
+    err = capsys.readouterr().err
+    assert "train_size_incline is the study train_size on incline, but env=ft was given too" in err
+    assert study.main(["train_size_walking", "dry_run=true"]) == 2
+    assert "no study 'train_size_walking'" in capsys.readouterr().err
+
+
 @pytest.mark.parametrize("name,archs,runs", [("ab_rmomo_cell", {"rmomo"}, 2), ("ab_rmomo_residual", {"rmomo"}, 2),
                                              ("ab_rmemo_context", {"rmemo"}, 3),
                                              ("ab_geometry", {"rmomo", "modumorph"}, 3),
