@@ -10,7 +10,7 @@
 # undo that: `trap - INT` does nothing then, so a one-line Python resets it before running the command), the script
 # waits for all of them, and exits with the first nonzero exit status in the order given (0 when all succeed).
 # Two commands sharing one GPU (two processes, which it time-slices) ran slower together than one alone, for
-# throughput-bound runs (session 46) and for 32-env rollouts (0.82-0.88x, session 58; docs/benchmarks.md): one per GPU.
+# throughput-bound runs (0.96x, session 46) and for 32-env rollouts (~0.8-0.9x, session 58; docs/benchmarks.md).
 set -o pipefail
 [ $# -ge 1 ] || { echo "usage: bash tools/per_gpu.sh '<command for GPU 0>' ['<command for GPU 1>' ...]" >&2; exit 2; }
 default_int='import os, signal, sys; signal.signal(signal.SIGINT, signal.SIG_DFL)
