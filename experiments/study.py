@@ -160,11 +160,18 @@ class StudyRun:
     seed: int
 
 
+STUDY_DIR = CONF_DIR / "study"
+
+
+def study_file(name: str) -> Path:
+    return STUDY_DIR / f"{name}.yaml"
+
+
 def plan(c: StudyConfig) -> list[StudyRun]:
     """Every run of a study, grouped by architecture and run name, seeds last."""
-    f = CONF_DIR / "study" / f"{c.name}.yaml"
+    f = study_file(c.name)
     if not f.exists():
-        known = sorted(p.stem for p in (CONF_DIR / "study").glob("*.yaml"))
+        known = sorted(p.stem for p in STUDY_DIR.glob("*.yaml"))
         raise ValueError(f"no study {c.name!r} ({f} does not exist); known: {', '.join(known)}")
     spec = yaml.safe_load(f.read_text())
     names = list(spec["runs"])
@@ -204,10 +211,10 @@ def study_for_task(argv: list[str]) -> list[str]:
     """`<study>_<task>` (e.g. `paper_ft`, as issue 15 names the command) where no study file has that name: the study
     `<study>` with `env=<task>`, the same runs in the same directories (<out>/<study>/<task>-...) as `<study>
     env=<task>`, so either spelling resumes the other. A different env= beside it is refused."""
-    if not argv or "=" in argv[0] or argv[0].startswith("-") or (CONF_DIR / "study" / f"{argv[0]}.yaml").exists():
+    if not argv or "=" in argv[0] or argv[0].startswith("-") or study_file(argv[0]).exists():
         return argv
     base, _, task = argv[0].rpartition("_")
-    if task not in TASKS or not (CONF_DIR / "study" / f"{base}.yaml").exists():
+    if task not in TASKS or not study_file(base).exists():
         return argv
     given = [a for a in argv[1:] if a.split("=")[0] == "env"]
     if given and given != [f"env={task}"]:
