@@ -101,8 +101,8 @@ def test_jax_semantics_at_the_edges():
 
 
 def _triton_kernels(fn, *args):
-    """The Triton IR modules (verified) and launch grids of `fn` lowered for CUDA (jaxlib <= 0.10.2 keeps the IR in
-    the custom call; later jaxlibs compile it while lowering, which needs a GPU)."""
+    """The Triton IR modules (verified) and launches (grid x, grid y, warps) of `fn` lowered for CUDA (jaxlib <=
+    0.10.2 keeps the IR in the custom call; later jaxlibs compile it while lowering, which needs a GPU)."""
     from jax._src.lib import version as jaxlib_version
     if jaxlib_version > (0, 10, 2):
         pytest.skip(f"jaxlib {jaxlib_version} compiles Triton kernels while lowering: needs a GPU")
@@ -118,8 +118,8 @@ def _triton_kernels(fn, *args):
                     attrs = inner.operation.attributes
                     if inner.operation.name == "stablehlo.custom_call" and "triton" in str(attrs["call_target_name"]):
                         config = ir.DictAttr(attrs["mhlo.backend_config"])
-                        found.append((ir.StringAttr(config["ir"]).value_bytes,
-                                      tuple(ir.IntegerAttr(config[k]).value for k in ("grid_x", "grid_y"))))
+                        launch = tuple(ir.IntegerAttr(config[k]).value for k in ("grid_x", "grid_y", "num_warps"))
+                        found.append((ir.StringAttr(config["ir"]).value_bytes, launch))
                     walk(inner.operation)
     walk(hlo.operation)
     out = []
@@ -138,11 +138,14 @@ def test_kernels_lower_to_triton_ir():
         return _both(lambda x, lower: gpu_linalg.cho_factor(x, lower=lower, interpret=False),
                      lambda c, y: gpu_linalg.cho_solve(c, y, interpret=False), a, b, bm)
     one = _triton_kernels(f, s((58, 58), jnp.float32), s((58,), jnp.float32), s((58, 3), jnp.float32))
-    assert len(one) == 6 and all(grid == (1, 1) for _, grid in one)
+    assert len(one) == 6 and all(launch == (1, 1, 4) for _, launch in one)
     assert all("tensor<64x64xf32>" in text and "scf.for" in text for text, _ in one)
     envs = _triton_kernels(jax.vmap(jax.vmap(f)), s((2, 64, 58, 58), jnp.float32), s((2, 64, 58), jnp.float32),
                            s((2, 64, 58, 3), jnp.float32))
-    assert len(envs) == 6 and all(grid == (64, 2) for _, grid in envs)       # one program per matrix
+    assert len(envs) == 6 and all(launch == (64, 2, 4) for _, launch in envs)     # one program per matrix
+    two = _triton_kernels(lambda a: gpu_linalg.cho_factor(a, interpret=False, num_warps=2)[0],
+                          s((5, 5), jnp.float32))
+    assert [launch for _, launch in two] == [(1, 1, 2)] and "tensor<8x8xf32>" in two[0][0]
 
 
 def test_the_key_is_checked_composed_and_free_on_resume(tmp_path):

@@ -63,9 +63,14 @@ def _interpret(interpret: bool | None) -> bool:
     return jax.default_backend() == "cpu" if interpret is None else bool(interpret)
 
 
-def _params(size: int):
-    """Triton's launch options for a tile of `size` x `size`: ~8 values per thread of the matrix, 1-8 warps."""
-    return _TritonParams(num_warps=min(8, max(1, size * size // 1024)), num_stages=1)
+def num_warps_for(size: int) -> int:
+    """Warps of one program for a `size` x `size` tile: ~32 values of the matrix per thread, 1-8 (64 x 64: 4). A
+    guess until measured (`experiments.bench_cholesky warps=1,2,4,8` times the others)."""
+    return min(8, max(1, size * size // 1024))
+
+
+def _params(size: int, num_warps: int | None):
+    return _TritonParams(num_warps=num_warps_for(size) if num_warps is None else int(num_warps), num_stages=1)
 
 
 def _float(x: jax.Array) -> jax.Array:
@@ -138,24 +143,24 @@ def _pad_square(a: jax.Array, size: int) -> jax.Array:
     return jnp.where(eye, jnp.ones((), a.dtype), jnp.pad(a, ((0, size - n), (0, size - n))))
 
 
-def _factor_one(a: jax.Array, interpret: bool) -> jax.Array:
+def _factor_one(a: jax.Array, interpret: bool, num_warps: int | None) -> jax.Array:
     """L of the lower triangle of one (n, n) matrix."""
     n = a.shape[-1]
     size = padded_size(n)
     out = pl.pallas_call(_factor_kernel, out_shape=jax.ShapeDtypeStruct((size, size), a.dtype),
-                         interpret=interpret, compiler_params=_params(size), name="mjx_morph_cho_factor")(
+                         interpret=interpret, compiler_params=_params(size, num_warps), name="mjx_morph_cho_factor")(
         _pad_square(a, size))
     return out[:n, :n]
 
 
-def _solve_one(c: jax.Array, b: jax.Array, lower: bool, interpret: bool) -> jax.Array:
+def _solve_one(c: jax.Array, b: jax.Array, lower: bool, interpret: bool, num_warps: int | None) -> jax.Array:
     """x of one (n, n) factor and one (n, k) right-hand side."""
     n, k = b.shape
     size, width = padded_size(n), padded_size(k)
     b = jnp.pad(b, ((0, size - n), (0, width - k)))
     kernel = lambda c_ref, b_ref, x_ref: _solve_kernel(c_ref, b_ref, x_ref, lower=lower)  # noqa: E731
     out = pl.pallas_call(kernel, out_shape=jax.ShapeDtypeStruct((size, width), b.dtype), interpret=interpret,
-                         compiler_params=_params(size), name="mjx_morph_cho_solve")(_pad_square(c, size), b)
+                         compiler_params=_params(size, num_warps), name="mjx_morph_cho_solve")(_pad_square(c, size), b)
     return out[:n, :k]
 
 
@@ -176,8 +181,10 @@ def _kernel_ok(x: jax.Array) -> bool:
 
 # ---- the public functions: jax.scipy.linalg's signatures ----------------------------------------------------------
 def cho_factor(a, lower: bool = False, overwrite_a: bool = False, check_finite: bool = True, *,
-               interpret: bool | None = None):
-    """`jax.scipy.linalg.cho_factor` as one Pallas kernel per matrix: (c, lower), c of shape (..., n, n)."""
+               interpret: bool | None = None, num_warps: int | None = None):
+    """`jax.scipy.linalg.cho_factor` as one Pallas kernel per matrix: (c, lower), c of shape (..., n, n).
+    `interpret`: None (the default backend a CPU), True or False; `num_warps`: a program's warps on a GPU (None:
+    `num_warps_for`). overwrite_a and check_finite are ignored, as by JAX."""
     a = _float(jnp.asarray(a))
     if a.ndim < 2 or a.shape[-1] != a.shape[-2]:
         raise ValueError(f"cho_factor: expected a square matrix (..., n, n), got shape {a.shape}")
@@ -185,14 +192,14 @@ def cho_factor(a, lower: bool = False, overwrite_a: bool = False, check_finite: 
         return _JAX_CHO_FACTOR(a, lower=lower, overwrite_a=overwrite_a, check_finite=check_finite)
     tri = a if lower else jnp.swapaxes(a, -1, -2)          # the triangle JAX reads, as a lower one
     interp = _interpret(interpret)
-    l = _over_batch(lambda x: _factor_one(x, interp), a.shape[:-2], tri)
+    l = _over_batch(lambda x: _factor_one(x, interp, num_warps), a.shape[:-2], tri)
     return (l if lower else jnp.swapaxes(l, -1, -2)), lower
 
 
 def cho_solve(c_and_lower, b, overwrite_b: bool = False, check_finite: bool = True, *,
-              interpret: bool | None = None):
+              interpret: bool | None = None, num_warps: int | None = None):
     """`jax.scipy.linalg.cho_solve` as one Pallas kernel per right-hand side matrix (forward and back
-    substitution in one kernel)."""
+    substitution in one kernel). `interpret`, `num_warps` as for `cho_factor`."""
     c, lower = c_and_lower
     c, b = _float(jnp.asarray(c)), _float(jnp.asarray(b))
     if c.ndim < 2 or c.shape[-1] != c.shape[-2]:
@@ -208,5 +215,5 @@ def cho_solve(c_and_lower, b, overwrite_b: bool = False, check_finite: bool = Tr
     c = jnp.broadcast_to(c, (*batch, n, n))
     rhs = jnp.broadcast_to(rhs, (*batch, *rhs.shape[-2:]))
     interp = _interpret(interpret)
-    x = _over_batch(lambda cc, bb: _solve_one(cc, bb, bool(lower), interp), batch, c, rhs)
+    x = _over_batch(lambda cc, bb: _solve_one(cc, bb, bool(lower), interp, num_warps), batch, c, rhs)
     return x[..., 0] if vector else x
