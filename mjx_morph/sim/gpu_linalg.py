@@ -20,10 +20,11 @@ written for one matrix held whole by one program (a 64 x 64 float32 tile lives i
     solve    forward substitution with L, then back substitution with L^T, in the same kernel, each a column of
              the factor a step, picked out by a masked sum (Triton cannot index a register tile by a traced index).
 Triton needs power-of-two shapes: n is padded up to the next power of two (identity on the padded diagonal, zeros
-elsewhere; k likewise with zero columns) and the result sliced back. A batch (MJX runs vmapped over the envs) is
-`pallas_call`'s batching rule: one program per matrix, the batch as the launch grid. float32 only (MJX's physics);
-other dtypes, and n > MAX_N (a tile too large for one program's registers), go to JAX's own functions. Not
-differentiable (the physics is never differentiated); jit and vmap work.
+elsewhere; k likewise with zero columns) and the result sliced back (the 100 train robots' nv of 58 runs as 64; an nv
+just above a power of two costs more: the generated robots' 70 runs as 128, a 4x larger tile). A batch (MJX runs
+vmapped over the envs) is `pallas_call`'s batching rule: one program per matrix, the batch as the launch grid.
+float32 only (MJX's physics); other dtypes, and n > MAX_N (a tile too large for one program's registers), go to
+JAX's own functions. Not differentiable (the physics is never differentiated); jit and vmap work.
 
 Where it runs: with the default backend a CPU (seen while tracing), `pallas_call(interpret=True)` runs the same
 kernels as plain JAX, which is how the tests check them; on a GPU they lower through Pallas' Triton backend
