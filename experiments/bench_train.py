@@ -17,7 +17,8 @@ all seeds together, and `per_run_*` the rates each run sees.
 `mode=update` skips the physics: it times the update on a batch of random observations of the right shapes with
 the KL stop off (`ppo.kl_threshold` = inf, so every epoch runs: the worst case), and compiles nothing else, which
 makes comparing learner variants quick. `mode=rollout` times the rollout alone (physics and acting), for comparing
-physics variants (`env.self_collision=false`, `env.iterations=...`) as the training loop runs them.
+physics variants (`env.self_collision=false`, `env.iterations=...`, `env.linalg=pallas`) as the training loop runs
+them.
 
 `profile=true` writes a trace of one call of each timed phase (TensorBoard's profile plugin or Perfetto read it:
 `profile_dir/<phase>/plugins/profile/<run>/*.xplane.pb`, with the compiled program beside it as `<phase>_hlo.txt`)
@@ -342,9 +343,10 @@ def bench(cfg: BenchTrainConfig) -> None:
     steps = pc.steps_per_iter * (trainer.num_seeds or 1)      # env steps of one iteration, all seeds together
     out = {"arch": model.arch, "seeds": trainer.num_seeds or 1, "env": cfg.env.task, "robots": robots,
            "num_robots": env.num_robots, "device": jax.devices()[0].device_kind, "precision": cfg.precision,
-           "mode": cfg.mode, "self_collision": cfg.env.self_collision, "num_envs": pc.num_envs,
-           "rollout_len": pc.rollout_len, "minibatch_size": pc.minibatch_size, "steps_per_iter": pc.steps_per_iter,
-           "params": model.num_params(), "xla_flags": os.environ.get("XLA_FLAGS", "")}
+           "mode": cfg.mode, "self_collision": cfg.env.self_collision, "linalg": cfg.env.linalg,
+           "num_envs": pc.num_envs, "rollout_len": pc.rollout_len, "minibatch_size": pc.minibatch_size,
+           "steps_per_iter": pc.steps_per_iter, "params": model.num_params(),
+           "xla_flags": os.environ.get("XLA_FLAGS", "")}
     phases = _update_alone if cfg.mode == "update" else _iterations
     ts, batch = phases(cfg, trainer, steps, build_s, out)
     if cfg.mode != "rollout":   # the FLOPs of the worst case (every epoch), scaled by the epochs the KL stop let run

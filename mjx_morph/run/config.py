@@ -131,10 +131,11 @@ class RunConfig:
 IDENTITY = ("env.task", "env.context_features", "arch", "model", "robots", "robots_root", "num_robots", "seed",
             "ppo.num_envs", "ppo.rollout_len", "ppo.window", "ppo.burn_in", "ppo.minibatch_size", "ppo.sampling")
 #: keys of the loop alone, which a resume may change freely; every other key changes only through allow_changes
+#: (env.linalg too: how MJX's Cholesky is computed, the same equations; runs saved before the key resume as they are)
 FREE = ("run_dir", "devices", "seeds", "coordinator", "num_processes", "process_id", "stop_after", "stop_at",
         "time_limit_min", "checkpoint_every", "stall_min", "stop_unhealthy", "phase_timing", "fast_compile",
         "progress", "progress_every_min", "compile_cache", "allow_changes", "resume_step", "allow_outside_design_space",
-        "expect_physics")
+        "expect_physics", "env.linalg")
 
 
 class ConfigError(ValueError):

@@ -20,7 +20,10 @@ Data flow (one idea per module):
     contact      floor-capsule contacts for MJX as MuJoCo C makes them against MetaMorph's box floor; unused slots'
                  contacts ranked last for a contact budget (`never_ranked`)
     hfield_contact  height-field sphere / capsule contacts for MJX as MuJoCo C makes them (one per prism)
-    cpu_linalg   pure-JAX Cholesky for MJX on CPU with jaxlib < 0.11 (deadlock workaround)
+    linalg       which Cholesky factor / solve MJX uses (`EnvConfig.linalg`: jax | pallas), given to MJX's modules
+                 while an env's step is traced
+    cpu_linalg   pure-JAX Cholesky for MJX on CPU with jaxlib < 0.11 (deadlock workaround; linalg's "jax" there)
+    gpu_linalg   one fused Pallas kernel per Cholesky factorisation and per solve (linalg's "pallas"; Triton on GPU)
     fidelity     padded MJX robots against the robots alone in MuJoCo C (`experiments.check_sim`)
 
 Public API:
@@ -43,7 +46,9 @@ being traced, MuJoCo C's box-face contacts outside any; an env traces its step i
 limb-limb and torso-limb contacts are MuJoCo C's closed forms instead of MJX's regularised ones),
 `hfield_contact.install()` (likewise the height-field sphere / capsule colliders and `hfield_contact.rule(...)`,
 MuJoCo C's contacts outside any block; the rule also sizes MJX's contact arrays, so an env runs `make_data` and its
-steps inside `UnimalEnv.physics()`) and `cpu_linalg.install()` (pure-JAX Cholesky in MJX on CPU with jaxlib < 0.11).
+steps inside `UnimalEnv.physics()`) and `linalg.install()` (MJX's Cholesky factor / solve: those of the
+`linalg.use(name)` block being traced, JAX's own outside any, pure-JAX loops instead on CPU with jaxlib < 0.11; an
+env traces inside `use(config.linalg)`).
 
 Deviations from MetaMorph / ModuMorph (each documented in its module):
 - solver: at most 16 Newton iterations and 8 line-search iterations instead of 100 / 50, the same converged solve
@@ -65,9 +70,9 @@ Deviations from MetaMorph / ModuMorph (each documented in its module):
 """
 # MJX is patched once, when this package is imported (the missing-Warp message was silenced by mjx_morph's
 # own import): MuJoCo C's floor-capsule and robot-robot contacts (contact.py), MuJoCo C's height-field contacts
-# (hfield_contact.py) and, on old CPU jaxlibs, a pure-JAX Cholesky.
-from . import contact, cpu_linalg, hfield_contact  # noqa: E402
+# (hfield_contact.py) and the env's choice of Cholesky (linalg.py; on old CPU jaxlibs a pure-JAX one by default).
+from . import contact, hfield_contact, linalg  # noqa: E402
 
 contact.install()
 hfield_contact.install()
-cpu_linalg.install()
+linalg.install()

@@ -7,21 +7,16 @@ hangs at 0% CPU (seen here with MJX's Newton solver vmapped over 60 robots on th
 all pool threads in `BlockingCounter::Wait` under `CholeskyFactorization`). jaxlib 0.11 compiles that parallel
 path out of open-source builds, and GPUs never take it.
 
-`install()`, called once when `mjx_morph.sim` is imported, gives MJX's modules that factor or solve with Cholesky
-(smooth, solver, forward) a view of `jax` in which `jax.scipy.linalg.cho_factor` / `cho_solve` are plain JAX loops
-(`lax.fori_loop` over the columns; exact to float rounding, O(n^3) like LAPACK, fine for the nv <= ~60 of padded
-UNIMALs) when the default backend is CPU, and JAX's own functions otherwise; the backend is looked at while a step
-is traced, so importing the package does not initialise JAX's backends. Only those three MJX modules see the
-view, only with jaxlib older than 0.11 (nothing is installed otherwise); everything else is untouched.
+`applies()` says whether the workaround is needed (jaxlib older than 0.11 and the default backend a CPU, looked
+at while a step is traced, so importing the package does not initialise JAX's backends); then linalg.py, the one
+place MJX is given its Cholesky, gives MJX's modules that factor or solve with it (smooth, solver, forward) these
+plain JAX loops for the default `env.linalg=jax` (`lax.fori_loop` over the columns; exact to float rounding,
+O(n^3) like LAPACK, fine for the nv <= ~60 of padded UNIMALs) and JAX's own functions otherwise.
 """
 from __future__ import annotations
 
-import types
-
 import jax
 import jax.numpy as jnp
-
-_INSTALLED = False
 
 
 def cholesky_upper(a: jax.Array) -> jax.Array:
@@ -71,15 +66,6 @@ def cho_solve(c_and_lower, b, overwrite_b=False, check_finite=True):
     return _solve_upper(u, _solve_upper(u, jnp.asarray(b), transpose=True), transpose=False)
 
 
-class _Namespace(types.SimpleNamespace):
-    def __init__(self, base, **overrides):
-        super().__init__(**overrides)
-        self._base = base
-
-    def __getattr__(self, name):
-        return getattr(self._base, name)
-
-
 def _affected_jaxlib() -> bool:
     try:
         major, minor = (int(x) for x in jax.__version__.split(".")[:2])
@@ -88,35 +74,7 @@ def _affected_jaxlib() -> bool:
     return (major, minor) < (0, 11)
 
 
-def _pure_jax() -> bool:
-    return jax.default_backend() == "cpu"
-
-
-def _mjx_cho_factor(a, lower=False, overwrite_a=False, check_finite=True):
-    f = cho_factor if _pure_jax() else _JAX_CHO_FACTOR
-    return f(a, lower=lower, overwrite_a=overwrite_a, check_finite=check_finite)
-
-
-def _mjx_cho_solve(c_and_lower, b, overwrite_b=False, check_finite=True):
-    f = cho_solve if _pure_jax() else _JAX_CHO_SOLVE
-    return f(c_and_lower, b, overwrite_b=overwrite_b, check_finite=check_finite)
-
-
-_JAX_CHO_FACTOR, _JAX_CHO_SOLVE = jax.scipy.linalg.cho_factor, jax.scipy.linalg.cho_solve
-
-
-def install() -> bool:
-    """Give MJX's Cholesky users the view (jaxlib < 0.11 only). Idempotent; returns whether it is installed."""
-    global _INSTALLED
-    if _INSTALLED:
-        return True
-    if not _affected_jaxlib():
-        return False
-    from mujoco.mjx._src import forward, smooth, solver
-    linalg = _Namespace(jax.scipy.linalg, cho_factor=_mjx_cho_factor, cho_solve=_mjx_cho_solve)
-    scipy = _Namespace(jax.scipy, linalg=linalg)
-    view = _Namespace(jax, scipy=scipy)
-    for mod in (forward, smooth, solver):
-        mod.jax = view
-    _INSTALLED = True
-    return True
+def applies() -> bool:
+    """Whether MJX's "jax" Cholesky should be these loops: jaxlib < 0.11 with the default backend a CPU (call it
+    while tracing)."""
+    return _affected_jaxlib() and jax.default_backend() == "cpu"

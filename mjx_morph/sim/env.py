@@ -64,7 +64,7 @@ from mujoco import mjx
 from ..layout import NUM_ACTIONS, Obs, Robots, context_mask
 from ..unimal.morphology import Morphology
 from ..unimal.sets import RobotSet, load_set
-from . import contact, hfield_contact, observation, reward, terrain
+from . import contact, hfield_contact, linalg, observation, reward, terrain
 from .model import StackedModel, Tables, build_stacked_model, model_digest
 from .padding import SolverOptions
 from .tasks import EPISODE_LENGTH, FRAME_SKIP, RESET_NOISE, Task, get_task
@@ -120,6 +120,11 @@ class EnvConfig:
                                         # arithmetic needs) or "default" (JAX's: TF32 on recent NVIDIA GPUs,
                                         # which took 45 of 100 train robots over 1 mm from MuJoCo C in 0.5 s on
                                         # an H200, none with "highest": docs/benchmarks.md, session 42)
+    linalg: str = "jax"             # MJX's Cholesky factor / solve (Newton Hessian, mass matrix): "jax" (JAX's own:
+                                    # cuSOLVER / cuBLAS on a GPU, ~50 small kernels a factorisation) or "pallas"
+                                    # (one fused Pallas kernel a factorisation and a solve, sim/gpu_linalg.py; not
+                                    # yet measured on a GPU). Chosen while the env's step is traced (sim/linalg.py);
+                                    # arithmetic only, so outside the model digest, and a resume may change it
 
 
 class Physics(NamedTuple):
@@ -188,6 +193,7 @@ class UnimalEnv:
                                   config.hfield_candidates)
         if config.matmul_precision not in ("highest", "default"):
             raise ValueError(f"env.matmul_precision={config.matmul_precision!r}: expected highest or default")
+        linalg.check(config.linalg)
         self.morphologies = tuple(robots)
         self.terrain: terrain.Terrain = terrain.for_task(self.task, self.morphologies)
         budget = config.contact_cap(self.terrain.uses_hfield)
@@ -223,10 +229,12 @@ class UnimalEnv:
     @contextlib.contextmanager
     def physics(self) -> Iterator[None]:
         """The block to trace this env's MJX calls in (make_data, step): its matmul precision, floor-capsule rule
-        (contact.py) and height-field rule (hfield_contact.py; it also sets the size of MJX's contact arrays)."""
+        (contact.py), height-field rule (hfield_contact.py; it also sets the size of MJX's contact arrays) and
+        Cholesky (linalg.py)."""
         c = self.config
         with jax.default_matmul_precision(c.matmul_precision), contact.floor(c.floor_contacts), \
-                hfield_contact.rule(c.hfield_contacts, c.hfield_contacts_per_geom, c.hfield_candidates):
+                hfield_contact.rule(c.hfield_contacts, c.hfield_contacts_per_geom, c.hfield_candidates), \
+                linalg.use(c.linalg):
             yield
 
     def _row(self, tree, robot):
