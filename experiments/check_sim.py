@@ -69,6 +69,7 @@ class CheckSimConfig:
     seed: int = 0
     floor_contacts: str = "box"              # box: MetaMorph's floor (MuJoCo C box, its rule in MJX); plane: a plane
     matmul_precision: str = _ENV.matmul_precision   # MJX's matmul precision: highest | default (TF32 on GPUs)
+    linalg: str = _ENV.linalg                # MJX's Cholesky: jax (JAX's own) | pallas (sim/gpu_linalg.py's kernels)
     task: str = "ft"                         # incline | csr | obstacle: compare the padded MJX env with the same padded
                                              # model in MuJoCo C on MetaMorph's slab or on the same height-field
                                              # patches (fidelity.compare_task)
@@ -234,11 +235,11 @@ def check(a: CheckSimConfig) -> None:
         res = fidelity.compare(rs.robots, opts, steps=a.steps, seed=a.seed, tree=tree,
                                floor_contacts=a.floor_contacts, matmul_precision=a.matmul_precision,
                                unpadded_mjx=a.unpadded_mjx, x64=a.x64, alone=alone, c_gap=a.c_gap,
-                               c_defaults=a.c_defaults)
+                               c_defaults=a.c_defaults, linalg_name=a.linalg)
         print(f"# {rs.name}: {len(res)} robots, solver iterations {it}, line search {ls}, "
               f"self-collision {'on' if a.self_collision else 'off'}, floor {a.floor_contacts}, "
               f"contact budget {budget or 'none'}, {a.steps} control steps, "
-              f"matmul precision {a.matmul_precision}, MJX in {fl} on {jax.devices()[0].platform}"
+              f"matmul precision {a.matmul_precision}, Cholesky {a.linalg}, MJX in {fl} on {jax.devices()[0].platform}"
               f"{_reference(a)} ({time.time() - t0:.0f} s)")
         fields = list(PADDED + (ALONE if a.unpadded_mjx else ()))
         print(" ".join([f"{'robot':40s}"] + [f"{f[:9]:>9s}" for f in fields]) + "   (m; error = padded MJX vs "
@@ -283,7 +284,8 @@ def check_task(a: CheckSimConfig, rs) -> None:
                                 hfield_contacts=a.hfield_contacts,
                                 hfield_contacts_per_geom=a.hfield_contacts_per_geom,
                                 hfield_candidates=a.hfield_candidates,
-                                contact_budget=a.contact_budget, flat_contact_budget=a.flat_contact_budget)
+                                contact_budget=a.contact_budget, flat_contact_budget=a.flat_contact_budget,
+                                linalg=a.linalg)
     rule_detail = (f" ({a.hfield_contacts_per_geom} per geom, {a.hfield_candidates or 'all'} candidate prisms per "
                    "group)" if a.hfield_contacts == "mujoco" else "")
     budget = dataclasses.replace(_ENV, contact_budget=a.contact_budget,

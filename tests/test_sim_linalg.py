@@ -155,6 +155,9 @@ def test_the_key_is_checked_composed_and_free_on_resume(tmp_path):
     from mjx_morph.sim.env import make_env
     with pytest.raises(ValueError, match="env.linalg='cusolver': expected one of jax, pallas"):
         make_env("gen/train", "ft", linalg="cusolver")
+    from mjx_morph.sim import fidelity
+    with pytest.raises(ValueError, match="env.linalg='cusolver'"):     # check_sim's path: refused before any work
+        fidelity.compare([], linalg_name="cusolver")
     assert linalg.current() == "jax" and linalg.functions("pallas")[0] is gpu_linalg.cho_factor
     with linalg.use("pallas"):
         assert linalg.current() == "pallas"
