@@ -156,9 +156,17 @@ def test_balanced_sampling_matches_sequential_ema():
     # uniform mode never changes; draws follow the probabilities
     u = upd(sampling.init(R, "uniform"), jnp.asarray(lengths), jnp.asarray(robots), jnp.asarray(done))
     np.testing.assert_allclose(u.probs, 1.0 / R)
-    draws = jax.vmap(lambda k: sampling.sample(k, st, R))(jax.random.split(jax.random.PRNGKey(0), 4000))
+    keys = jax.random.split(jax.random.PRNGKey(0), 4000)
+    draws = jax.vmap(lambda k: sampling.sample(k, st, R))(keys)
     freq = np.bincount(np.asarray(draws), minlength=R) / 4000
     np.testing.assert_allclose(freq, np.asarray(st.probs), atol=0.03)
+    # index for index jax.random.choice's draws (the same key stream as before the loop-free lookup), and no loop
+    np.testing.assert_array_equal(draws, jax.vmap(lambda k: jax.random.choice(k, R, p=st.probs))(keys))
+    skewed = st._replace(probs=jnp.asarray(np.r_[0.9, np.full(R - 1, 0.1 / (R - 1))], jnp.float32))
+    np.testing.assert_array_equal(jax.vmap(lambda k: sampling.sample(k, skewed, R))(keys),
+                                  jax.vmap(lambda k: jax.random.choice(k, R, p=skewed.probs))(keys))
+    jaxpr = str(jax.make_jaxpr(lambda k: sampling.sample(k, st, R))(keys[0]))
+    assert "scan" not in jaxpr and "while" not in jaxpr          # searchsorted's default is a scan
 
 
 def test_reward_and_terminations():
