@@ -1,8 +1,8 @@
 """MJX's batched Cholesky alone: JAX's `cho_factor` / `cho_solve` against the fused Pallas kernels (env.linalg).
 
     python -m experiments.bench_cholesky                       # on the GPU machine: B = 64 and 1024, n = 58
-    python -m experiments.bench_cholesky n=64 batches=64,4096 reps=100
-    python -m experiments.bench_cholesky warps=1,2,4,8               # also pallas with each warp count
+    python -m experiments.bench_cholesky n=64 'batches=[64,4096]' reps=100
+    python -m experiments.bench_cholesky 'warps=[1,2,4,8]'           # also pallas with each warp count
 
 As MJX calls them (sim/gpu_linalg.py): B random SPD float32 matrices of size n, the upper factor (lower=False) and a
 vector right-hand side, vmapped over B; times the factorisation alone, the solve alone, and both in one program
@@ -14,28 +14,32 @@ n = 58). On a CPU the Pallas kernels run interpreted: the numbers then say nothi
 """
 from __future__ import annotations
 
+import dataclasses
 import functools
 import re
 import sys
 import time
+from typing import List
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from mjx_morph.run import register
 from mjx_morph.sim import gpu_linalg
 
+from . import cli
 
 
-def _args(argv):
-    opts = {"n": "58", "batches": "64,1024", "reps": "50", "warps": ""}
-    for arg in argv:
-        key, _, value = arg.partition("=")
-        if key not in opts or not value:
-            raise SystemExit(f"bench_cholesky: unknown argument {arg!r}; expected n=, batches=, reps=, warps=")
-        opts[key] = value
-    warps = [int(w) for w in opts["warps"].split(",") if w]
-    return int(opts["n"]), [int(b) for b in opts["batches"].split(",")], int(opts["reps"]), warps
+@dataclasses.dataclass
+class BenchCholeskyConfig:
+    n: int = 58                              # matrix size (the 100 train robots' padded nv)
+    batches: List[int] = dataclasses.field(default_factory=lambda: [64, 1024])   # matrices a call (envs)
+    reps: int = 50                           # timed calls per case (the median is printed)
+    warps: List[int] = dataclasses.field(default_factory=list)    # also pallas with each of these warp counts
+
+
+register("bench_cholesky_schema", BenchCholeskyConfig)
 
 
 def _impls(warps):
@@ -64,8 +68,8 @@ def _kernels(compiled) -> str:
     return ",".join(sorted(set(targets))) or "-"
 
 
-def main(argv=None) -> None:
-    n, batches, reps, warps = _args(sys.argv[1:] if argv is None else argv)
+def bench(cfg: BenchCholeskyConfig) -> None:
+    n, batches, reps, warps = cfg.n, list(cfg.batches), cfg.reps, list(cfg.warps)
     size = gpu_linalg.padded_size(n)
     print(f"# jax {jax.__version__} on {jax.devices()[0].device_kind}; n={n} (pallas pads to {size}, "
           f"{gpu_linalg.num_warps_for(size)} warps), float32, upper factor, vector b; median of {reps} calls, ms")
@@ -91,5 +95,9 @@ def main(argv=None) -> None:
                   flush=True)
 
 
+def main(argv=None) -> int:
+    return cli.main(bench, "bench_cholesky_schema", BenchCholeskyConfig, __doc__, argv)
+
+
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

@@ -66,7 +66,7 @@ def _interpret(interpret: bool | None) -> bool:
 
 def num_warps_for(size: int) -> int:
     """Warps of one program for a `size` x `size` tile: ~32 values of the matrix per thread, 1-8 (64 x 64: 4). A
-    guess until measured (`experiments.bench_cholesky warps=1,2,4,8` times the others)."""
+    guess until measured (`experiments.bench_cholesky warps=[1,2,4,8]` times the others)."""
     return min(8, max(1, size * size // 1024))
 
 
