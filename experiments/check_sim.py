@@ -235,7 +235,7 @@ def check(a: CheckSimConfig) -> None:
         res = fidelity.compare(rs.robots, opts, steps=a.steps, seed=a.seed, tree=tree,
                                floor_contacts=a.floor_contacts, matmul_precision=a.matmul_precision,
                                unpadded_mjx=a.unpadded_mjx, x64=a.x64, alone=alone, c_gap=a.c_gap,
-                               c_defaults=a.c_defaults, linalg_name=a.linalg)
+                               c_defaults=a.c_defaults, linalg=a.linalg)
         print(f"# {rs.name}: {len(res)} robots, solver iterations {it}, line search {ls}, "
               f"self-collision {'on' if a.self_collision else 'off'}, floor {a.floor_contacts}, "
               f"contact budget {budget or 'none'}, {a.steps} control steps, "

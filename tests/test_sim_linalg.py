@@ -20,7 +20,7 @@ import pytest
 import yaml
 
 from mjx_morph.run import FAST_COMPILE
-from mjx_morph.sim import gpu_linalg, linalg
+from mjx_morph.sim import cpu_linalg, gpu_linalg, linalg
 
 #: largest difference from jax.scipy.linalg allowed, relative to the largest entry of JAX's result (measured: < 1e-6)
 FACTOR_TOL = 1e-5
@@ -96,7 +96,9 @@ def test_jax_semantics_at_the_edges():
     assert from_ints.dtype == np.float32
     np.testing.assert_allclose(from_ints, np.sqrt(3) * np.eye(n), rtol=1e-6)
     big = jax.ShapeDtypeStruct((gpu_linalg.MAX_N + 1,) * 2, jnp.float32)         # beyond one program's tile
-    assert "pallas_call" not in str(jax.make_jaxpr(gpu_linalg.cho_factor)(big))
+    fallback = str(jax.make_jaxpr(gpu_linalg.cho_factor)(big))
+    assert "pallas_call" not in fallback
+    assert ("cholesky" in fallback) != cpu_linalg.applies()      # env.linalg=jax's: the CPU loops where they apply
     assert "pallas_call" in str(jax.make_jaxpr(gpu_linalg.cho_factor)(jax.ShapeDtypeStruct((58, 58), jnp.float32)))
 
 
@@ -157,7 +159,7 @@ def test_the_key_is_checked_composed_and_free_on_resume(tmp_path):
         make_env("gen/train", "ft", linalg="cusolver")
     from mjx_morph.sim import fidelity
     with pytest.raises(ValueError, match="env.linalg='cusolver'"):     # check_sim's path: refused before any work
-        fidelity.compare([], linalg_name="cusolver")
+        fidelity.compare([], linalg="cusolver")
     assert linalg.current() == "jax" and linalg.functions("pallas")[0] is gpu_linalg.cho_factor
     with linalg.use("pallas"):
         assert linalg.current() == "pallas"

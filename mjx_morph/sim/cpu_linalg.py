@@ -78,3 +78,12 @@ def applies() -> bool:
     """Whether MJX's "jax" Cholesky should be these loops: jaxlib < 0.11 with the default backend a CPU (call it
     while tracing)."""
     return _affected_jaxlib() and jax.default_backend() == "cpu"
+
+
+_JAX = (jax.scipy.linalg.cho_factor, jax.scipy.linalg.cho_solve)
+
+
+def default_functions():
+    """(cho_factor, cho_solve) of `env.linalg=jax`: these loops where `applies()`, JAX's own otherwise (call it while
+    tracing). Also what the Pallas kernels (gpu_linalg.py) fall back to for what they do not handle."""
+    return (cho_factor, cho_solve) if applies() else _JAX

@@ -45,7 +45,8 @@ from mujoco import mjx
 
 from ..unimal.mjcf import to_mjcf
 from ..unimal.morphology import MAX_NODES, Morphology
-from . import contact, linalg
+from . import contact
+from . import linalg as cholesky
 from .model import INERT_MARGIN, build_stacked_model, compile_padded, inert_geoms, self_contact_margin
 from .padding import SolverOptions, WorldSpec
 from .supertree import SharedTree
@@ -155,7 +156,7 @@ def ulp_nudge(x, rng: np.random.Generator, dtype=np.float32) -> np.ndarray:
 
 def _run_mjx_alone(mm: mujoco.MjModel, starts, ctrls, substeps: int, bodies, floor_contacts: str,
                    matmul_precision: str, compiler_options: dict | None, dtype=jnp.float32,
-                   linalg_name: str = "jax") -> list[np.ndarray]:
+                   linalg: str = "jax") -> list[np.ndarray]:
     """Body positions (steps, len(bodies), 3) of the robot alone in MJX (float32, or `dtype` under
     `jax.enable_x64`), as `_run_c`, from each (qpos, qvel) of `starts` (one compilation)."""
     mx = mjx.put_model(mm, impl="jax")
@@ -166,7 +167,7 @@ def _run_mjx_alone(mm: mujoco.MjModel, starts, ctrls, substeps: int, bodies, flo
 
     def args(q, v):
         return jnp.asarray(q, dtype), jnp.asarray(v, dtype), jnp.asarray(ctrls, dtype)
-    with contact.floor(floor_contacts), jax.default_matmul_precision(matmul_precision), linalg.use(linalg_name):
+    with contact.floor(floor_contacts), jax.default_matmul_precision(matmul_precision), cholesky.use(linalg):
         f = jax.jit(run, compiler_options=compiler_options).lower(*args(*starts[0])).compile()
     return [np.asarray(f(*args(q, v)), np.float64) for q, v in starts]
 
@@ -202,7 +203,7 @@ def compare(robots: Sequence[Morphology], options: SolverOptions = SolverOptions
             compiler_options: dict | None = None, floor_contacts: str = "box",
             matmul_precision: str = "highest", unpadded_mjx: bool = False, x64: bool = False,
             alone: range | None = None, c_gap: bool = False, c_defaults: bool = False,
-            linalg_name: str = "jax") -> list[Result]:
+            linalg: str = "jax") -> list[Result]:
     """Compare every robot (see the module docstring). `floor_contacts`: "box" (MetaMorph's box floor in MuJoCo C,
     its rule in MJX) or "plane" (a plane in MuJoCo C, MuJoCo C's plane rule in MJX); `matmul_precision`: MJX's
     (the env's `EnvConfig.matmul_precision`; it matters on GPUs with TF32); `unpadded_mjx`: also run each robot
@@ -214,18 +215,18 @@ def compare(robots: Sequence[Morphology], options: SolverOptions = SolverOptions
     limb-limb contact within 1e-7 m of touching, decided one way by MuJoCo C and the other by the gap);
     `c_defaults`: MuJoCo C at MuJoCo's default solver iterations (`converged`), MetaMorph's physics, while MJX runs
     `options`' (the env's): the whole of our physics against the paper's, the solver's truncation included.
-    `linalg_name`: MJX's Cholesky (the env's `EnvConfig.linalg`: jax | pallas; sim/linalg.py)."""
-    linalg.check(linalg_name)
+    `linalg`: MJX's Cholesky (the env's `EnvConfig.linalg`: jax | pallas; sim/linalg.py)."""
+    cholesky.check(linalg)
     if floor_contacts not in ("box", "plane"):
         raise ValueError(f"floor_contacts={floor_contacts!r}: expected 'box' or 'plane'")
     with jax.enable_x64(True) if x64 else contextlib.nullcontext():
         return _compare(tuple(robots), options, steps, substeps, seed, tree, compiler_options, floor_contacts,
                         matmul_precision, unpadded_mjx, jnp.float64 if x64 else jnp.float32,
-                        range(len(robots)) if alone is None else alone, c_gap, c_defaults, linalg_name)
+                        range(len(robots)) if alone is None else alone, c_gap, c_defaults, linalg)
 
 
 def _compare(robots, options, steps, substeps, seed, tree, compiler_options, floor_contacts, matmul_precision,
-             unpadded_mjx, dtype, alone_robots, c_gap, c_defaults, linalg_name) -> list[Result]:
+             unpadded_mjx, dtype, alone_robots, c_gap, c_defaults, linalg) -> list[Result]:
     c_floor = METAMORPH_FLOOR if floor_contacts == "box" else FLOOR
     np_dtype = np.dtype(dtype).type          # the MJX float, for the ulp nudge
     sm = build_stacked_model(robots, FLOOR_WORLD, options, tree=tree)
@@ -266,7 +267,7 @@ def _compare(robots, options, steps, substeps, seed, tree, compiler_options, flo
     args = (jnp.arange(R), jnp.asarray(qpos, dtype), jnp.asarray(qvel, dtype),
             jnp.asarray(act24, dtype), jnp.asarray(tab.ctrl_src))
     # the floor rule, the matmul precision and the Cholesky are chosen while tracing
-    with contact.floor(floor_contacts), jax.default_matmul_precision(matmul_precision), linalg.use(linalg_name):
+    with contact.floor(floor_contacts), jax.default_matmul_precision(matmul_precision), cholesky.use(linalg):
         f = jax.jit(jax.vmap(run), compiler_options=compiler_options).lower(*args).compile()
     xs = np.asarray(f(*args))
     padded_c = padded_c_models(sm, dataclasses.replace(FLOOR_WORLD, geoms=c_floor), c_gap)
@@ -289,7 +290,7 @@ def _compare(robots, options, steps, substeps, seed, tree, compiler_options, flo
         if unpadded_mjx and r in alone_robots:
             x_alone_mjx, x_ulp = _run_mjx_alone(
                 alone_mjx_model(m, options), [(q, v), ulp], actions[r], substeps, np.arange(1, 1 + m.num_nodes),
-                floor_contacts, matmul_precision, compiler_options, dtype, linalg_name)
+                floor_contacts, matmul_precision, compiler_options, dtype, linalg)
             padding_mjx = float(np.abs(x_mjx - x_alone_mjx).max())
             mjx_alone = float(np.abs(x_alone_mjx - x_alone).max())
             mjx_ulp = float(np.abs(x_ulp - x_alone_mjx).max())
@@ -337,9 +338,10 @@ def compare_task(robots: Sequence[Morphology], task: str, options: SolverOptions
     hfield_contact.py), its contact budget and float32 against MuJoCo C's; on the incline it is the floor rule
     (contact.py) and float32 against MuJoCo C's box. `env_options`: further EnvConfig options (hfield_contacts,
     hfield_contacts_per_geom, contact_budget, flat_contact_budget, linalg). Body positions are compared through
-    MuJoCo C's kinematics of both states. `mjx_ulp`: the same MJX run started with every qpos / qvel entry one float32 step
-    (ulp) away, against the run itself: float32's own spread on that trajectory, the size of difference rounding
-    alone makes (a chaotic trajectory shows a gap to MuJoCo C as large as this spread). `mjx_step`: MuJoCo C
+    MuJoCo C's kinematics of both states. `mjx_ulp`: the same MJX run started with every qpos / qvel entry one
+    float32 step (ulp) away, against the run itself: float32's own spread on that trajectory, the size of
+    difference rounding alone makes (a chaotic trajectory shows a gap to MuJoCo C as large as this spread).
+    `mjx_step`: MuJoCo C
     restarted from MJX's state (qpos, qvel, the solver's warm start) before each control step and run that one
     step, against MJX's next state: the physics compared without the trajectory's amplification of float32's
     per-step error. `trace`: names of robots whose MuJoCo C contacts (run and restart, every substep) are kept in

@@ -24,7 +24,8 @@ elsewhere; k likewise with zero columns) and the result sliced back (the 100 tra
 just above a power of two costs more: the generated robots' 70 runs as 128, a 4x larger tile). A batch (MJX runs
 vmapped over the envs) is `pallas_call`'s batching rule: one program per matrix, the batch as the launch grid.
 float32 only (MJX's physics); other dtypes, and n > MAX_N (a tile too large for one program's registers), go to
-JAX's own functions. Not differentiable (the physics is never differentiated); jit and vmap work.
+env.linalg=jax's functions (`cpu_linalg.default_functions`). Not differentiable (the physics is never
+differentiated); jit and vmap work.
 
 Where it runs: with the default backend a CPU (seen while tracing), `pallas_call(interpret=True)` runs the same
 kernels as plain JAX, which is how the tests check them; on a GPU they lower through Pallas' Triton backend
@@ -44,15 +45,16 @@ import jax
 import jax.numpy as jnp
 from jax.experimental import pallas as pl
 
+from . import cpu_linalg
+
 try:
     from jax.experimental.pallas.triton import CompilerParams as _TritonParams
 except ImportError:                                     # older JAX spelled it TritonCompilerParams
     from jax.experimental.pallas import TritonCompilerParams as _TritonParams  # type: ignore[attr-defined,no-redef]
 
-#: the largest n factored here (padded to 128: a 64 KiB tile for one program); larger go to JAX's functions
+#: the largest n factored here (padded to 128: a 64 KiB tile for one program); larger go to env.linalg=jax's
 MAX_N = 128
 
-_JAX_CHO_FACTOR, _JAX_CHO_SOLVE = jax.scipy.linalg.cho_factor, jax.scipy.linalg.cho_solve
 
 
 def padded_size(n: int) -> int:
@@ -190,7 +192,7 @@ def cho_factor(a, lower: bool = False, overwrite_a: bool = False, check_finite: 
     if a.ndim < 2 or a.shape[-1] != a.shape[-2]:
         raise ValueError(f"cho_factor: expected a square matrix (..., n, n), got shape {a.shape}")
     if not _kernel_ok(a) or a.shape[-1] == 0:
-        return _JAX_CHO_FACTOR(a, lower=lower, overwrite_a=overwrite_a, check_finite=check_finite)
+        return cpu_linalg.default_functions()[0](a, lower=lower, overwrite_a=overwrite_a, check_finite=check_finite)
     tri = a if lower else jnp.swapaxes(a, -1, -2)          # the triangle JAX reads, as a lower one
     interp = _interpret(interpret)
     l = _over_batch(lambda x: _factor_one(x, interp, num_warps), a.shape[:-2], tri)
@@ -207,7 +209,7 @@ def cho_solve(c_and_lower, b, overwrite_b: bool = False, check_finite: bool = Tr
         raise ValueError(f"cho_solve: expected a square factor (..., n, n), got shape {c.shape}")
     n = c.shape[-1]
     if not _kernel_ok(c) or b.dtype != c.dtype or n == 0:
-        return _JAX_CHO_SOLVE((c, lower), b, overwrite_b=overwrite_b, check_finite=check_finite)
+        return cpu_linalg.default_functions()[1]((c, lower), b, overwrite_b=overwrite_b, check_finite=check_finite)
     vector = b.ndim == 1 or (c.ndim == b.ndim + 1 and b.shape[-1] == n)   # (n,), or JAX's batched vectors
     rhs = b[..., None] if vector else b
     if rhs.ndim < 2 or rhs.shape[-2] != n:

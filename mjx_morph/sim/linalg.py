@@ -28,7 +28,6 @@ from . import cpu_linalg
 
 CHOICES = ("jax", "pallas")
 _CHOICE = contextvars.ContextVar("mjx_morph_linalg", default="jax")
-_JAX = (jax.scipy.linalg.cho_factor, jax.scipy.linalg.cho_solve)
 #: MJX's modules that factor or solve with Cholesky (mujoco-mjx 3.17.0)
 MJX_MODULES = ("forward", "smooth", "solver")
 _INSTALLED = False
@@ -66,9 +65,7 @@ def functions(name: str | None = None) -> Tuple[Callable, Callable]:
     if name == "pallas":
         from . import gpu_linalg
         return gpu_linalg.cho_factor, gpu_linalg.cho_solve
-    if cpu_linalg.applies():
-        return cpu_linalg.cho_factor, cpu_linalg.cho_solve
-    return _JAX
+    return cpu_linalg.default_functions()
 
 
 def _cho_factor(a, lower=False, overwrite_a=False, check_finite=True):
