@@ -12,16 +12,21 @@ semantics of `jax.scipy.linalg`'s: the factor reads one triangle of `a` (the upp
 returns the factor with zeros in the other triangle; a matrix that is not positive definite (a pivot <= 0 or NaN)
 gives NaN in the whole factor triangle (JAX: the same for a pivot <= 0); the solve reads only the factor's
 triangle; `b` is a vector (n,) or a matrix (..., n, k), with the leading batch dimensions of `c` and `b` broadcast,
-and a batch of vectors (..., n) where `c` has one more dimension (JAX's deprecated reading, kept). Each kernel is
-written for one matrix held whole by one program (a 64 x 64 float32 tile lives in the registers of 4 warps):
-    factor   right-looking, one column a step (`fori_loop` over the columns): the column is picked out of the
-             tile by a masked row sum, scaled by the pivot's square root, and the trailing block takes the rank-1
-             update, masked to the rows and columns after the pivot;
-    solve    forward substitution with L, then back substitution with L^T, in the same kernel, each a column of
-             the factor a step, picked out by a masked sum (Triton cannot index a register tile by a traced index).
-Triton needs power-of-two shapes: n is padded up to the next power of two (identity on the padded diagonal, zeros
-elsewhere; k likewise with zero columns) and the result sliced back (the 100 train robots' nv of 58 runs as 64; an nv
-just above a power of two costs more: the generated robots' 70 runs as 128, a 4x larger tile). A batch (MJX runs
+and a batch of vectors (..., n) where `c` has one more dimension (JAX's deprecated reading, kept). One program a
+matrix:
+    factor   right-looking, one column a step (`fori_loop` over the columns), the matrix held whole as a register
+             tile (64 x 64 float32 in 4 warps): the column is picked out of the tile by a masked row sum (Triton
+             cannot index a register tile by a traced index), scaled by the pivot's square root, and the trailing
+             block takes the rank-1 update, masked to the rows and columns after the pivot;
+    solve    forward substitution with L, then back substitution with L^T, in the same kernel, one unknown a step
+             from one row of L (forward) or of L^T (back; XLA transposes the factor outside, and for MJX's upper
+             factor that transpose cancels the factor's own) read from memory, against the unknowns found so far:
+             one reduction a step in one warp, no tile of the factor held (session 61: the first version picked
+             columns out of a register tile, three reductions a step across 4 warps, and took twice the factor's
+             time in the GPU profile).
+Triton needs power-of-two shapes: n is padded up to the next power of two with zeros (k likewise), the loops stop at
+n, and the result is sliced back (the 100 train robots' nv of 58 runs as 64; an nv just above a power of two costs
+more: the generated robots' 70 runs as 128, a 4x larger tile). A batch (MJX runs
 vmapped over the envs) is `pallas_call`'s batching rule: one program per matrix, the batch as the launch grid.
 float32 only (MJX's physics); other dtypes, and n > MAX_N (a tile too large for one program's registers), go to
 env.linalg=jax's functions (`cpu_linalg.default_functions`). Not differentiable (the physics is never
@@ -33,12 +38,14 @@ kernels as plain JAX, which is how the tests check them; on a GPU they lower thr
 either (tests lower for CUDA on a CPU to check that the kernels lower to Triton IR).
 
 How it is switched: `EnvConfig.linalg` ("jax": JAX's functions, the default; "pallas": these), which MJX sees
-through `linalg.py`'s view while an env traces its physics. Not yet measured on a GPU: whether it is faster than
-cuSOLVER / cuBLAS there (`experiments/bench_cholesky.py` times the kernels alone, `experiments.bench_train
-mode=rollout env.linalg=pallas` the rollout), and the Triton compilation itself (TTIR to PTX) never ran here.
+through `linalg.py`'s view while an env traces its physics. Measured on an H200 (docs/benchmarks.md, session 61):
+the first version's kernels compile and agree with cuSOLVER's to 6e-7, check_sim on the train set is unchanged, and
+the 64-env rollout ran 10% faster (the 1,024-env one 17% slower); `experiments/bench_cholesky.py` times the kernels
+alone, `experiments.bench_train mode=rollout env.linalg=pallas` the rollout.
 """
 from __future__ import annotations
 
+import functools
 import math
 
 import jax
@@ -54,6 +61,9 @@ except ImportError:                                     # older JAX spelled it T
 
 #: the largest n factored here (padded to 128: a 64 KiB tile for one program); larger go to env.linalg=jax's
 MAX_N = 128
+#: warps of one solve program: its tiles are rows of (k, size), so one warp holds them and its reductions stay in
+#: the warp (no shared memory and barrier a step)
+SOLVE_WARPS = 1
 
 
 
@@ -72,8 +82,8 @@ def num_warps_for(size: int) -> int:
     return min(8, max(1, size * size // 1024))
 
 
-def _params(size: int, num_warps: int | None):
-    return _TritonParams(num_warps=num_warps_for(size) if num_warps is None else int(num_warps), num_stages=1)
+def _params(num_warps: int):
+    return _TritonParams(num_warps=int(num_warps), num_stages=1)
 
 
 def _float(x: jax.Array) -> jax.Array:
@@ -82,11 +92,12 @@ def _float(x: jax.Array) -> jax.Array:
 
 
 # ---- kernels (one matrix each) ---------------------------------------------------------------------------------
-def _factor_kernel(a_ref, l_ref):
-    """L (zeros above the diagonal) of the lower triangle of the tile; NaN in L's triangle if a pivot is not > 0."""
-    n = a_ref.shape[0]
-    r = jax.lax.broadcasted_iota(jnp.int32, (n,), 0)
-    cols = jax.lax.broadcasted_iota(jnp.int32, (n, n), 1)
+def _factor_kernel(a_ref, l_ref, *, n: int):
+    """L (zeros above the diagonal) of the lower triangle of the tile's first n rows and columns (the rest is zero
+    padding, left as it is); NaN in L's triangle if a pivot is not > 0."""
+    size = a_ref.shape[0]
+    r = jax.lax.broadcasted_iota(jnp.int32, (size,), 0)
+    cols = jax.lax.broadcasted_iota(jnp.int32, (size, size), 1)
 
     def column(j, carry):
         a, ok = carry                       # a: columns < j hold L's, the block from (j, j) on is still to factor
@@ -99,72 +110,67 @@ def _factor_kernel(a_ref, l_ref):
         return a, ok
 
     a, ok = jax.lax.fori_loop(0, n, column, (a_ref[...], jnp.float32(1.0)))
-    rows = jax.lax.broadcasted_iota(jnp.int32, (n, n), 0)
+    rows = jax.lax.broadcasted_iota(jnp.int32, (size, size), 0)
     l_ref[...] = jnp.where((ok > 0.0) | (rows < cols), a, jnp.nan)
 
 
-def _solve_kernel(c_ref, b_ref, x_ref, *, lower: bool):
-    """x with L L^T x = b, L = the tile's lower triangle (lower) or the transpose of its upper triangle."""
-    c = c_ref[...]
-    n, k = b_ref.shape
-    r = jax.lax.broadcasted_iota(jnp.int32, (n,), 0)
-    rb = jax.lax.broadcasted_iota(jnp.int32, (n, k), 0)
-    rows = jax.lax.broadcasted_iota(jnp.int32, (n, n), 0)
-    cols = jax.lax.broadcasted_iota(jnp.int32, (n, n), 1)
+def _solve_kernel(l_ref, lt_ref, bt_ref, xt_ref, *, n: int):
+    """x^T with L L^T x = b, from L (`l_ref`), L^T (`lt_ref`) and b^T (`bt_ref`, one right-hand side a row).
 
-    def pick_col(j):                        # c[:, j]
-        return jnp.sum(jnp.where(cols == j, c, 0.0), axis=1)
+    Both substitutions go row by row, reading one row of L (forward) or of L^T (back) from memory a step, so no
+    tile of the factor is held and each step has one reduction on its critical path (the row against the unknowns
+    found so far, the new right-hand side entry folded in), along the rows of the (k, size) tile of unknowns."""
+    k, size = bt_ref.shape
+    cols = jax.lax.broadcasted_iota(jnp.int32, (k, size), 1)
+    line = jax.lax.broadcasted_iota(jnp.int32, (1, size), 1)
 
-    def pick_row(j):                        # c[j, :]
-        return jnp.sum(jnp.where(rows == j, c, 0.0), axis=0)
+    def substitute(ref, j, v, done):
+        """Fix unknown j of v (k, size): (v[:, j] - row . v over the columns `done` selects) / row[j], with `row`
+        row j of `ref`."""
+        row = ref[pl.ds(j, 1), :]                                                          # (1, size)
+        t = jnp.sum(jnp.where(done, -row * v, jnp.where(cols == j, v, 0.0)), axis=1, keepdims=True)   # (k, 1)
+        pivot = jnp.sum(jnp.where(line == j, row, 0.0), axis=1, keepdims=True)                   # (1, 1)
+        return jnp.where(cols == j, t / pivot, v)
 
-    def substitute(j, y, line, keep):
-        """Fix unknown j of y from `line` (the factor's entries against unknown j) and eliminate it from the rows
-        `keep` selects."""
-        yj = jnp.sum(jnp.where(rb == j, y, 0.0), axis=0) / jnp.sum(jnp.where(r == j, line, 0.0))     # (k,)
-        rest = jnp.where(keep, line, 0.0)
-        return jnp.where(rb == j, yj[None, :], y - rest[:, None] * yj[None, :])
+    def forward(j, v):                      # L z = b: z_j from row j of L and z_0..z_{j-1}
+        return substitute(l_ref, j, v, cols < j)
 
-    def forward(j, y):                      # L z = b: column j of L
-        return substitute(j, y, pick_col(j) if lower else pick_row(j), r > j)
-
-    def backward(i, y):                     # L^T x = z, the last unknown first: column j of L^T = row j of L
+    def backward(i, v):                     # L^T x = z, the last unknown first, from row j of L^T
         j = n - 1 - i
-        return substitute(j, y, pick_row(j) if lower else pick_col(j), r < j)
+        return substitute(lt_ref, j, v, cols > j)
 
-    y = jax.lax.fori_loop(0, n, forward, b_ref[...])
-    x_ref[...] = jax.lax.fori_loop(0, n, backward, y)
+    v = jax.lax.fori_loop(0, n, forward, bt_ref[...])
+    xt_ref[...] = jax.lax.fori_loop(0, n, backward, v)
 
 
 # ---- one matrix: pad, call, slice ---------------------------------------------------------------------------------
-def _pad_square(a: jax.Array, size: int) -> jax.Array:
-    n = a.shape[-1]
-    if n == size:
-        return a
-    i = jnp.arange(size)
-    eye = (i[:, None] == i[None, :]) & (i[:, None] >= n)
-    return jnp.where(eye, jnp.ones((), a.dtype), jnp.pad(a, ((0, size - n), (0, size - n))))
+def _pad(x: jax.Array, shape: tuple[int, ...]) -> jax.Array:
+    """`x` with zeros after its entries up to `shape` (the kernels never read the padding's values: their loops
+    stop at the true size)."""
+    return jnp.pad(x, [(0, s - d) for s, d in zip(shape, x.shape)])
 
 
 def _factor_one(a: jax.Array, interpret: bool, num_warps: int | None) -> jax.Array:
     """L of the lower triangle of one (n, n) matrix."""
     n = a.shape[-1]
     size = padded_size(n)
-    out = pl.pallas_call(_factor_kernel, out_shape=jax.ShapeDtypeStruct((size, size), a.dtype),
-                         interpret=interpret, compiler_params=_params(size, num_warps), name="mjx_morph_cho_factor")(
-        _pad_square(a, size))
+    kernel = functools.partial(_factor_kernel, n=n)
+    out = pl.pallas_call(kernel, out_shape=jax.ShapeDtypeStruct((size, size), a.dtype), interpret=interpret,
+                         compiler_params=_params(num_warps_for(size) if num_warps is None else num_warps),
+                         name="mjx_morph_cho_factor")(_pad(a, (size, size)))
     return out[:n, :n]
 
 
-def _solve_one(c: jax.Array, b: jax.Array, lower: bool, interpret: bool, num_warps: int | None) -> jax.Array:
-    """x of one (n, n) factor and one (n, k) right-hand side."""
+def _solve_one(l: jax.Array, b: jax.Array, interpret: bool, num_warps: int | None) -> jax.Array:
+    """x of one lower factor L (n, n) and one (n, k) right-hand side."""
     n, k = b.shape
     size, width = padded_size(n), padded_size(k)
-    b = jnp.pad(b, ((0, size - n), (0, width - k)))
-    kernel = lambda c_ref, b_ref, x_ref: _solve_kernel(c_ref, b_ref, x_ref, lower=lower)  # noqa: E731
-    out = pl.pallas_call(kernel, out_shape=jax.ShapeDtypeStruct((size, width), b.dtype), interpret=interpret,
-                         compiler_params=_params(size, num_warps), name="mjx_morph_cho_solve")(_pad_square(c, size), b)
-    return out[:n, :k]
+    square = (size, size)
+    kernel = functools.partial(_solve_kernel, n=n)
+    out = pl.pallas_call(kernel, out_shape=jax.ShapeDtypeStruct((width, size), b.dtype), interpret=interpret,
+                         compiler_params=_params(SOLVE_WARPS if num_warps is None else num_warps),
+                         name="mjx_morph_cho_solve")(_pad(l, square), _pad(l.T, square), _pad(b.T, (width, size)))
+    return out[:k, :n].T
 
 
 def _over_batch(fn, batch: tuple[int, ...], *args: jax.Array) -> jax.Array:
@@ -218,5 +224,6 @@ def cho_solve(c_and_lower, b, overwrite_b: bool = False, check_finite: bool = Tr
     c = jnp.broadcast_to(c, (*batch, n, n))
     rhs = jnp.broadcast_to(rhs, (*batch, *rhs.shape[-2:]))
     interp = _interpret(interpret)
-    x = _over_batch(lambda cc, bb: _solve_one(cc, bb, bool(lower), interp, num_warps), batch, c, rhs)
+    l = c if lower else jnp.swapaxes(c, -1, -2)             # the factor as a lower one (for MJX's upper factor, the
+    x = _over_batch(lambda ll, bb: _solve_one(ll, bb, interp, num_warps), batch, l, rhs)  # transposes cancel)
     return x[..., 0] if vector else x
