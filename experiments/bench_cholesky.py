@@ -8,10 +8,12 @@ As MJX calls them (sim/gpu_linalg.py): B random SPD float32 matrices of size n, 
 vector right-hand side, vmapped over B; times the factorisation alone, the solve alone, and both in one program
 (the device's milliseconds a call: `reps` calls chained in one compiled loop, as MJX's solver loops call them, so
 that the host's dispatch, ~0.1 ms and most of a single call's time at small B, is left out), for `jax`
-(cuSOLVER's potrf and cuBLAS's trsm on a GPU) and `pallas` (one Triton kernel each), and prints the device kernels each compiled program calls (custom
-calls: cuSOLVER, cuBLAS, Triton) and the largest difference of pallas' solution from jax's (relative to its largest
-entry). `warps=` adds a pallas row for each count of warps a program, the factor's and the solve's alike (defaults:
-`gpu_linalg.num_warps_for`, 4 at n = 58, for the factor; `gpu_linalg.SOLVE_WARPS` for the solve). On a CPU the Pallas kernels run interpreted: the numbers then say nothing about the GPU.
+(cuSOLVER's potrf and cuBLAS's trsm on a GPU) and `pallas` (one Triton kernel each), and prints the device kernels
+each compiled program calls (custom calls: cuSOLVER, cuBLAS, Triton) and the largest difference of pallas' solution
+from jax's (relative to its largest entry). `warps=` adds a pallas row for each count of warps a program, the
+factor's and the solve's alike (defaults: `gpu_linalg.num_warps_for`, 4 at n = 58, for the factor;
+`gpu_linalg.SOLVE_WARPS` for the solve). On a CPU the Pallas kernels run interpreted: the numbers then say nothing
+about the GPU.
 """
 from __future__ import annotations
 
@@ -55,14 +57,13 @@ def _impls(warps):
 
 
 def _looped(fn, reps: int):
-    """`fn` (arrays -> one array) called `reps` times in one compiled loop, each call's input nudged by the last
-    call's output (by 1e-30 of it, so XLA can neither hoist nor drop a call): the device's time per call, without
-    the host's dispatch (which dominates a single call of a small batch)."""
+    """`fn` (arrays -> one array) called `reps` times in one compiled loop, each call's inputs nudged by 1e-30 of
+    the last call's first output entry (so XLA can neither hoist nor drop a call): the device's time per call,
+    without the host's dispatch (which dominates a single call of a small batch)."""
     def run(*args):
         def body(_, carry):
-            out = fn(*carry)
-            return tuple(x + 1e-30 * out.reshape(out.shape[:1] + (-1,))[:, :1].reshape(
-                out.shape[:1] + (1,) * (x.ndim - 1)) for x in carry)
+            nudge = 1e-30 * fn(*carry).reshape(-1)[0]
+            return tuple(x + nudge for x in carry)
         return jax.lax.fori_loop(0, reps, body, args)
     return jax.jit(run)
 

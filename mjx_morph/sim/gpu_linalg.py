@@ -41,8 +41,8 @@ How it is switched: `EnvConfig.linalg` ("jax": JAX's functions, the default; "pa
 through `linalg.py`'s view while an env traces its physics. Measured on an H200 (docs/benchmarks.md, session 61):
 the first version's kernels compile and agree with cuSOLVER's to 6e-7, check_sim on the train set is unchanged, and
 the 64-env rollout ran 10% faster (the 1,024-env one 17% slower); with this solve +15% at 64 and 256 envs, a tie at
-1,024; `experiments/bench_cholesky.py` times the kernels
-alone, `experiments.bench_train mode=rollout env.linalg=pallas` the rollout.
+1,024. `experiments/bench_cholesky.py` times the kernels alone, `experiments.bench_train mode=rollout
+env.linalg=pallas` the rollout.
 """
 from __future__ import annotations
 
