@@ -661,6 +661,9 @@ def test_variants_of_an_architecture_are_reported_apart(tmp_path):
     same = [run(0, True, "bf16"), run(1, True, "tf32")]
     name_variants(same)
     assert [r.name for r in same] == ["rmomo, precision=bf16", "rmomo, precision=tf32"]
+    solver = [run(0), run(1, extra={"env": {"task": "ft", "linalg": "pallas"}})]    # the same physics: seeds pool
+    name_variants(solver)
+    assert [r.name for r in solver] == ["rmomo", "rmomo"]
 
     root = tmp_path / "runs"
     for name, flag in (("a-s0", None), ("a-s1", None), ("b-s0", True)):

@@ -426,7 +426,9 @@ def classify(runs: Sequence[Run]) -> None:
 #: config keys (dotted, or prefixes) that make a variant of an architecture: how it was trained and simulated
 VARIANT_KEYS = ("model", "ppo", "precision", "env")
 #: ...except these: they have their own place in the report (task, context features) or say nothing of training
-NOT_VARIANT_KEYS = ("env.task", "env.context_features")
+#: (env.linalg: how MJX's Cholesky is computed, the same equations to float rounding and the same physics digest; a
+#: resume may change it, run.config.FREE; session 62's R-MoMo seed on pallas learned within the jax seeds' spread)
+NOT_VARIANT_KEYS = ("env.task", "env.context_features", "env.linalg")
 
 
 def _config_defaults() -> dict:
