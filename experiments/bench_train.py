@@ -50,6 +50,7 @@ import numpy as np
 
 from mjx_morph.ppo.trainer import Batch, Trainer, seed_keys, seed_state, stack_seeds
 from mjx_morph.run import RunConfig, build, register
+from mjx_morph.sim import linalg
 
 from . import cli, flops
 
@@ -343,7 +344,7 @@ def bench(cfg: BenchTrainConfig) -> None:
     steps = pc.steps_per_iter * (trainer.num_seeds or 1)      # env steps of one iteration, all seeds together
     out = {"arch": model.arch, "seeds": trainer.num_seeds or 1, "env": cfg.env.task, "robots": robots,
            "num_robots": env.num_robots, "device": jax.devices()[0].device_kind, "precision": cfg.precision,
-           "mode": cfg.mode, "self_collision": cfg.env.self_collision, "linalg": cfg.env.linalg,
+           "mode": cfg.mode, "self_collision": cfg.env.self_collision, "linalg": linalg.resolve(cfg.env.linalg),
            "num_envs": pc.num_envs, "rollout_len": pc.rollout_len, "minibatch_size": pc.minibatch_size,
            "steps_per_iter": pc.steps_per_iter, "params": model.num_params(),
            "xla_flags": os.environ.get("XLA_FLAGS", "")}

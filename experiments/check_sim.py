@@ -43,7 +43,7 @@ import jax
 import numpy as np
 
 from mjx_morph.run import register
-from mjx_morph.sim import fidelity
+from mjx_morph.sim import fidelity, linalg
 from mjx_morph.sim.env import EnvConfig
 from mjx_morph.sim.model import self_pair_summary
 from mjx_morph.sim.padding import SolverOptions
@@ -69,7 +69,8 @@ class CheckSimConfig:
     seed: int = 0
     floor_contacts: str = "box"              # box: MetaMorph's floor (MuJoCo C box, its rule in MJX); plane: a plane
     matmul_precision: str = _ENV.matmul_precision   # MJX's matmul precision: highest | default (TF32 on GPUs)
-    linalg: str = _ENV.linalg                # MJX's Cholesky: jax (JAX's own) | pallas (sim/gpu_linalg.py's kernels)
+    linalg: str = _ENV.linalg                # MJX's Cholesky: auto (pallas on a GPU, else jax) | jax (JAX's own) |
+                                             # pallas (sim/gpu_linalg.py's kernels)
     task: str = "ft"                         # incline | csr | obstacle: compare the padded MJX env with the same padded
                                              # model in MuJoCo C on MetaMorph's slab or on the same height-field
                                              # patches (fidelity.compare_task)
@@ -157,6 +158,11 @@ def merge_slices(paths: List[str]) -> tuple[list[str], list[list[str]]]:
     return header, merged
 
 
+def _cholesky(name: str) -> str:
+    """The Cholesky setting as the header names it: "auto" with what it stands for on this backend."""
+    return f"{name} ({linalg.resolve(name)})" if name == "auto" else name
+
+
 def _reference(a: CheckSimConfig) -> str:
     """What the MuJoCo C reference was given beyond its own model (`c_gap`, `c_defaults`), for a summary line."""
     it, ls = fidelity.MUJOCO_SOLVER
@@ -239,7 +245,8 @@ def check(a: CheckSimConfig) -> None:
         print(f"# {rs.name}: {len(res)} robots, solver iterations {it}, line search {ls}, "
               f"self-collision {'on' if a.self_collision else 'off'}, floor {a.floor_contacts}, "
               f"contact budget {budget or 'none'}, {a.steps} control steps, "
-              f"matmul precision {a.matmul_precision}, Cholesky {a.linalg}, MJX in {fl} on {jax.devices()[0].platform}"
+              f"matmul precision {a.matmul_precision}, Cholesky {_cholesky(a.linalg)}, "
+              f"MJX in {fl} on {jax.devices()[0].platform}"
               f"{_reference(a)} ({time.time() - t0:.0f} s)")
         fields = list(PADDED + (ALONE if a.unpadded_mjx else ()))
         print(" ".join([f"{'robot':40s}"] + [f"{f[:9]:>9s}" for f in fields]) + "   (m; error = padded MJX vs "

@@ -13,6 +13,8 @@ is checked by lowering them for CUDA here (Triton IR, verified; the compilation 
 """
 from __future__ import annotations
 
+from unittest import mock
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -159,22 +161,27 @@ def test_the_key_is_checked_composed_and_free_on_resume(tmp_path):
     from mjx_morph.run import RunDir, compose, compose_run_config
     from mjx_morph.run.config import FREE, IDENTITY, to_dict
     from mjx_morph.sim.env import make_env
-    with pytest.raises(ValueError, match="env.linalg='cusolver': expected one of jax, pallas"):
+    with pytest.raises(ValueError, match="env.linalg='cusolver': expected one of auto, jax, pallas"):
         make_env("gen/train", "ft", linalg="cusolver")
     from mjx_morph.sim import fidelity
     with pytest.raises(ValueError, match="env.linalg='cusolver'"):     # check_sim's path: refused before any work
         fidelity.compare([], linalg="cusolver")
-    assert linalg.current() == "jax" and linalg.functions("pallas")[0] is gpu_linalg.cho_factor
+    assert linalg.current() == "auto" and linalg.functions("pallas")[0] is gpu_linalg.cho_factor
     with linalg.use("pallas"):
         assert linalg.current() == "pallas"
+    # auto: the kernels where the default backend is a GPU, JAX's functions (here the CPU's) elsewhere
+    assert linalg.resolve("auto") == "jax" and linalg.functions("auto") == linalg.functions("jax")
+    with mock.patch.object(jax, "default_backend", lambda: "gpu"):
+        assert linalg.resolve("auto") == "pallas" and linalg.resolve("jax") == "jax"
+        assert linalg.functions()[1] is gpu_linalg.cho_solve          # outside any block: auto
     assert compose_run_config(["env.linalg=pallas"]).env.linalg == "pallas"
-    assert compose_run_config([]).env.linalg == "jax"
+    assert compose_run_config([]).env.linalg == "auto"
     bench = compose("bench_train", ["mode=rollout", "env.linalg=pallas", "ppo.num_envs=64"], BenchTrainConfig)
     assert bench.env.linalg == "pallas"
     saved = to_dict(compose_run_config([f"run_dir={tmp_path}"]))
     del saved["env"]["linalg"]                                # a run from before the key
     (tmp_path / "config.yaml").write_text(yaml.safe_dump(saved, sort_keys=False))
-    for value in ("jax", "pallas"):
+    for value in ("auto", "jax", "pallas"):
         RunDir(tmp_path, to_dict(compose_run_config([f"run_dir={tmp_path}", f"env.linalg={value}"])), IDENTITY, FREE)
 
 

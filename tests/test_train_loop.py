@@ -445,6 +445,7 @@ def test_a_resume_onto_other_physics_is_refused_unless_allowed(full_run, exp, tm
     f = d / "devices.yaml"
     entries = yaml.safe_load(f.read_text())
     assert entries[-1]["model_digest"] == exp.env.digest and len(exp.env.digest) == 16
+    assert entries[-1]["cholesky"] == "jax"         # env.linalg=auto on a CPU: what MJX ran with, recorded
     entries[-1]["model_digest"] = "0123456789abcdef"
     f.write_text(yaml.safe_dump(entries, sort_keys=False))
     before = _listing(d)

@@ -427,7 +427,7 @@ def classify(runs: Sequence[Run]) -> None:
 VARIANT_KEYS = ("model", "ppo", "precision", "env")
 #: ...except these: they have their own place in the report (task, context features) or say nothing of training
 #: (env.linalg: how MJX's Cholesky is computed, the same equations to float rounding and the same physics digest; a
-#: resume may change it, run.config.FREE; session 62's R-MoMo seed on pallas learned within the jax seeds' spread)
+#: resume may change it, run.config.FREE; session 62's R-MoMo seed on pallas learned no worse than those on jax)
 NOT_VARIANT_KEYS = ("env.task", "env.context_features", "env.linalg")
 
 

@@ -44,6 +44,7 @@ import jax
 import numpy as np
 
 from ..ppo.trainer import Trainer, TrainState, seed_keys, seed_state, stack_seeds
+from ..sim import linalg
 from . import distributed
 from .build import Experiment, build
 from .config import FREE, IDENTITY, RunConfig, to_dict, to_schema
@@ -395,7 +396,7 @@ def train(cfg: Any, experiment: Experiment | None = None, callbacks: Sequence[Ca
                          f"{len(members) if seeded else None}: build it from this config")
     pc = trainer.cfg
     print(f"[mjx_morph] {exp.model.arch} on {cfg.env.task}: {exp.env.num_robots} robots ({exp.robot_set}; physics "
-          f"{exp.env.digest[:8]}), "
+          f"{exp.env.digest[:8]}, Cholesky {linalg.resolve(cfg.env.linalg)}), "
           f"{exp.model.num_params():,} parameters, {pc.num_envs} envs x {pc.rollout_len} steps = "
           f"{pc.steps_per_iter:,} steps/iteration, {trainer.num_iters} iterations on {trainer.num_devices} "
           f"{jax.devices()[0].platform} device(s)"
@@ -425,7 +426,7 @@ def train(cfg: Any, experiment: Experiment | None = None, callbacks: Sequence[Ca
             if moved:
                 print(f"[mjx_morph] checkpoints {moved} moved to {run.path / 'checkpoints.orphaned'}", flush=True)
         run.truncate_metrics(latest or 0)      # rows after the checkpoint (or of a start that never saved one)
-        run.record_invocation(latest or 0, trainer.num_devices, exp.env.digest)
+        run.record_invocation(latest or 0, trainer.num_devices, exp.env.digest, linalg.resolve(cfg.env.linalg))
         if latest is not None:
             print(f"[mjx_morph] resumed from {run.path / 'checkpoints' / str(latest)} (iteration {latest})",
                   flush=True)

@@ -288,9 +288,11 @@ class RunDir:
             raise RunDirError(f"{self.path}: cannot write the run directory ({e.strerror or e}); "
                               "choose another run_dir") from None
 
-    def record_invocation(self, start_iteration: int, num_devices: int, model_digest: str | None = None) -> None:
+    def record_invocation(self, start_iteration: int, num_devices: int, model_digest: str | None = None,
+                          cholesky: str | None = None) -> None:
         """Append this invocation's entry to devices.yaml (process 0; the others write nothing), with the env's
-        `model_digest` (`UnimalEnv.digest`) where given."""
+        `model_digest` (`UnimalEnv.digest`) and the Cholesky MJX ran with (`sim.linalg.resolve(env.linalg)`:
+        "auto" stands for another on another backend) where given."""
         if not is_main():
             return
         dev = jax.devices()[0]
@@ -299,6 +301,8 @@ class RunDir:
                  "num_devices": int(num_devices), "processes": jax.process_count(), **cache_key_machine()}
         if model_digest is not None:
             entry["model_digest"] = model_digest
+        if cholesky is not None:
+            entry["cholesky"] = cholesky
         with (self.path / "devices.yaml").open("a") as fh:
             fh.write(yaml.safe_dump([entry], sort_keys=False))
 

@@ -120,11 +120,13 @@ class EnvConfig:
                                         # arithmetic needs) or "default" (JAX's: TF32 on recent NVIDIA GPUs,
                                         # which took 45 of 100 train robots over 1 mm from MuJoCo C in 0.5 s on
                                         # an H200, none with "highest": docs/benchmarks.md, session 42)
-    linalg: str = "jax"             # MJX's Cholesky factor / solve (Newton Hessian, mass matrix): "jax" (JAX's own:
-                                    # cuSOLVER / cuBLAS on a GPU, ~50 small kernels a factorisation) or "pallas"
-                                    # (one fused Pallas kernel a factorisation and a solve, sim/gpu_linalg.py; not
-                                    # yet measured on a GPU). Chosen while the env's step is traced (sim/linalg.py);
-                                    # arithmetic only, so outside the model digest, and a resume may change it
+    linalg: str = "auto"            # MJX's Cholesky factor / solve (Newton Hessian, mass matrix): "auto" (the
+                                    # default: "pallas" on a GPU, "jax" elsewhere), "jax" (JAX's own: cuSOLVER /
+                                    # cuBLAS on a GPU, ~50 small kernels a factorisation) or "pallas" (one fused
+                                    # Pallas kernel a factorisation and a solve, sim/gpu_linalg.py: +15% on an
+                                    # H200's 64- and 256-env rollouts, a tie at 1,024). Chosen while the env's step
+                                    # is traced (sim/linalg.py); arithmetic only, so outside the model digest, and a
+                                    # resume may change it
 
 
 class Physics(NamedTuple):

@@ -156,7 +156,7 @@ def ulp_nudge(x, rng: np.random.Generator, dtype=np.float32) -> np.ndarray:
 
 def _run_mjx_alone(mm: mujoco.MjModel, starts, ctrls, substeps: int, bodies, floor_contacts: str,
                    matmul_precision: str, compiler_options: dict | None, dtype=jnp.float32,
-                   linalg: str = "jax") -> list[np.ndarray]:
+                   linalg: str = cholesky.DEFAULT) -> list[np.ndarray]:
     """Body positions (steps, len(bodies), 3) of the robot alone in MJX (float32, or `dtype` under
     `jax.enable_x64`), as `_run_c`, from each (qpos, qvel) of `starts` (one compilation)."""
     mx = mjx.put_model(mm, impl="jax")
@@ -203,7 +203,7 @@ def compare(robots: Sequence[Morphology], options: SolverOptions = SolverOptions
             compiler_options: dict | None = None, floor_contacts: str = "box",
             matmul_precision: str = "highest", unpadded_mjx: bool = False, x64: bool = False,
             alone: range | None = None, c_gap: bool = False, c_defaults: bool = False,
-            linalg: str = "jax") -> list[Result]:
+            linalg: str = cholesky.DEFAULT) -> list[Result]:
     """Compare every robot (see the module docstring). `floor_contacts`: "box" (MetaMorph's box floor in MuJoCo C,
     its rule in MJX) or "plane" (a plane in MuJoCo C, MuJoCo C's plane rule in MJX); `matmul_precision`: MJX's
     (the env's `EnvConfig.matmul_precision`; it matters on GPUs with TF32); `unpadded_mjx`: also run each robot
@@ -215,7 +215,7 @@ def compare(robots: Sequence[Morphology], options: SolverOptions = SolverOptions
     limb-limb contact within 1e-7 m of touching, decided one way by MuJoCo C and the other by the gap);
     `c_defaults`: MuJoCo C at MuJoCo's default solver iterations (`converged`), MetaMorph's physics, while MJX runs
     `options`' (the env's): the whole of our physics against the paper's, the solver's truncation included.
-    `linalg`: MJX's Cholesky (the env's `EnvConfig.linalg`: jax | pallas; sim/linalg.py)."""
+    `linalg`: MJX's Cholesky (the env's `EnvConfig.linalg`: auto | jax | pallas; sim/linalg.py)."""
     cholesky.check(linalg)
     if floor_contacts not in ("box", "plane"):
         raise ValueError(f"floor_contacts={floor_contacts!r}: expected 'box' or 'plane'")

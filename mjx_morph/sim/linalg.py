@@ -5,10 +5,15 @@ of its modules (smooth: the mass matrix, solver: the Newton Hessian, forward: th
 called once when `mjx_morph.sim` is imported, gives those three modules a view of `jax` that is `jax` itself except
 for these two functions, which pick, each time MJX calls them (that is, while a step is traced), the
 implementation of the innermost `use(name)` block being traced:
-    "jax"     JAX's own functions (the default, also outside any block); on a CPU with jaxlib < 0.11 the pure-JAX
-              loops of cpu_linalg.py instead (a deadlock of those jaxlibs' batched LAPACK calls under MJX);
+    "auto"    the default, also outside any block: "pallas" where the default backend is a GPU, "jax" elsewhere
+              (`resolve`; on a CPU the kernels would run interpreted, far slower than the loops). Measured on an
+              H200 (docs/benchmarks.md, sessions 61-62): pallas is 15% faster on the 64- and 256-env rollouts, a
+              tie at 1,024, MuJoCo C agrees as closely (check_sim), and an R-MoMo seed trained on it learned no worse
+              than the two on jax (docs/results.md, session 62). Batches above 1,024 envs are not measured;
+    "jax"     JAX's own functions (cuSOLVER / cuBLAS on a GPU); on a CPU with jaxlib < 0.11 the pure-JAX loops of
+              cpu_linalg.py instead (a deadlock of those jaxlibs' batched LAPACK calls under MJX);
     "pallas"  gpu_linalg.py: one fused Pallas kernel per factorisation and one per solve (Triton on a GPU, the
-              same kernels interpreted as plain JAX on a CPU). Not yet measured on a GPU: opt in.
+              same kernels interpreted as plain JAX on a CPU, which is how the tests check them).
 An env traces all its MJX calls inside `UnimalEnv.physics()`, which enters `use(config.linalg)`, so two envs of
 one process with different settings each trace their own (as the floor-contact rules, contact.py). The choice is
 made while tracing, not when a compiled program runs: a function jitted once and called again inside another
@@ -26,26 +31,37 @@ import jax
 
 from . import cpu_linalg
 
-CHOICES = ("jax", "pallas")
-_CHOICE = contextvars.ContextVar("mjx_morph_linalg", default="jax")
+CHOICES = ("auto", "jax", "pallas")
+DEFAULT = "auto"
+_CHOICE = contextvars.ContextVar("mjx_morph_linalg", default=DEFAULT)
 #: MJX's modules that factor or solve with Cholesky (mujoco-mjx 3.17.0)
 MJX_MODULES = ("forward", "smooth", "solver")
 _INSTALLED = False
 
 
 def check(name: str) -> str:
-    """`name` if it is a known choice (and, for "pallas", Pallas imports); a ValueError naming the key otherwise."""
+    """`name` if it is a known choice (and, where it means "pallas", Pallas imports); a ValueError naming the key
+    otherwise."""
     if name not in CHOICES:
         raise ValueError(f"env.linalg={name!r}: expected one of {', '.join(CHOICES)} (MJX's Cholesky factor and "
-                         "solve: JAX's own, or the fused Pallas kernels of mjx_morph/sim/gpu_linalg.py)")
-    if name == "pallas":
+                         "solve: auto, the kernels on a GPU and JAX's own elsewhere; JAX's own; or the fused Pallas "
+                         "kernels of mjx_morph/sim/gpu_linalg.py)")
+    if resolve(name) == "pallas":
         from . import gpu_linalg  # noqa: F401  (fails here, at the env's build, where Pallas does not import)
+    return name
+
+
+def resolve(name: str) -> str:
+    """The implementation `name` stands for now: "auto" is "pallas" where JAX's default backend is a GPU, else
+    "jax"; the others stand for themselves. Called while tracing, as `functions` is."""
+    if name == "auto":
+        return "pallas" if jax.default_backend() == "gpu" else "jax"
     return name
 
 
 @contextlib.contextmanager
 def use(name: str) -> Iterator[None]:
-    """Trace the MJX calls inside this block with the Cholesky of `name` ("jax" or "pallas")."""
+    """Trace the MJX calls inside this block with the Cholesky of `name` (one of CHOICES)."""
     token = _CHOICE.set(check(name))
     try:
         yield
@@ -54,14 +70,15 @@ def use(name: str) -> Iterator[None]:
 
 
 def current() -> str:
-    """The choice of the innermost `use` block ("jax" outside any)."""
+    """The choice of the innermost `use` block (DEFAULT outside any), as given: `resolve` it for the
+    implementation."""
     return _CHOICE.get()
 
 
 def functions(name: str | None = None) -> Tuple[Callable, Callable]:
     """(cho_factor, cho_solve) that MJX gets for `name` (default: the current block's), decided now: call it while
-    tracing, since the "jax" choice looks at the default backend."""
-    name = check(current() if name is None else name)
+    tracing, since "auto" and "jax" look at the default backend."""
+    name = resolve(check(current() if name is None else name))
     if name == "pallas":
         from . import gpu_linalg
         return gpu_linalg.cho_factor, gpu_linalg.cho_solve
