@@ -560,6 +560,28 @@ def test_the_claims_manifest_holds_every_paper_run_once_and_each_seed_once():
     assert _check_manifest("claims.yaml", "paper_s*").excluded
 
 
+def test_the_converged_physics_manifest_pools_one_physics_geometry_and_precision():
+    """results/claims_converged.yaml (R-MoMo against ModuMorph at 20 M steps on today's physics) pools only runs of
+    physics a3c4a671 at 1,024 envs x 80 steps in fp32, each seed once, at least three seeds of each model; the physics
+    rule is seen to fail on a run of the capped solver."""
+    m = read_manifest(ROOT / "results" / "claims_converged.yaml")
+    runs = [read_run(p) for p in m.runs + m.pending]
+    seeds = [(r.task, r.arch, r.seed) for r in runs]
+    assert len(seeds) == len(set(seeds)), sorted(s for s in seeds if seeds.count(s) > 1)
+
+    def off(r):
+        ppo = r.cfg.get("ppo") or {}
+        return [k for k, bad in [("physics", [d[:8] for d in r.physics] != ["a3c4a671"]),
+                                 ("geometry", (ppo.get("num_envs"), ppo.get("rollout_len")) != (1024, 80)),
+                                 ("precision", r.cfg.get("precision") != "fp32")] if bad]
+    assert not {str(r.path): off(r) for r in runs if off(r)}
+    counts = {a: sum(r.arch == a for r in runs) for a in ("rmomo", "modumorph")}
+    assert min(counts.values()) >= 3, counts
+    Looks.parse(m.looks)
+    capped = read_run(read_manifest(ROOT / "results" / "claims.yaml").runs[0])
+    assert "physics" in off(capped)
+
+
 def design_100m_violations(runs: list[Run]) -> list[str]:
     """What breaks the 100 M-step claims' design (docs/results.md, plan item 6, fixed in session 50 before any of
     its runs): the paper's schedule run to its end (total_steps 1e8, no stop_at), the converged solver (16
