@@ -214,3 +214,16 @@ def test_mjx_step_with_pallas_matches_jax():
     assert np.abs(np.asarray(out["jax"][3])).max() > 1.0          # the floor pushes: the solver had work
     for name, got, want in zip(("qpos", "qvel", "qacc", "qfrc_constraint"), out["pallas"], out["jax"]):
         _close(got, want, SOLVE_TOL, name)
+
+
+def test_bench_cholesky_prints_a_row_per_case_and_the_kernels_agree(capsys):
+    """experiments.bench_cholesky on a CPU (the kernels interpreted): the header, one row per implementation and
+    batch with three positive times, and pallas' solution within float32 rounding of JAX's."""
+    from experiments import bench_cholesky
+    assert bench_cholesky.main(["n=5", "batches=[3]", "reps=2"]) in (0, None)
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0].startswith("# jax ") and "n=5" in lines[0]
+    rows = [line.split() for line in lines[2:]]
+    assert [r[:2] for r in rows] == [["3", "jax"], ["3", "pallas"]], lines
+    assert all(float(t) > 0 for r in rows for t in r[2:5])
+    assert float(rows[1][5]) < 1e-5
