@@ -395,8 +395,9 @@ def train(cfg: Any, experiment: Experiment | None = None, callbacks: Sequence[Ca
         raise ValueError(f"the experiment's trainer runs seeds={trainer.num_seeds}, the config "
                          f"{len(members) if seeded else None}: build it from this config")
     pc = trainer.cfg
+    chol = linalg.resolve(cfg.env.linalg)          # what MJX runs with here ("auto" stands for one per backend)
     print(f"[mjx_morph] {exp.model.arch} on {cfg.env.task}: {exp.env.num_robots} robots ({exp.robot_set}; physics "
-          f"{exp.env.digest[:8]}, Cholesky {linalg.resolve(cfg.env.linalg)}), "
+          f"{exp.env.digest[:8]}, Cholesky {chol}), "
           f"{exp.model.num_params():,} parameters, {pc.num_envs} envs x {pc.rollout_len} steps = "
           f"{pc.steps_per_iter:,} steps/iteration, {trainer.num_iters} iterations on {trainer.num_devices} "
           f"{jax.devices()[0].platform} device(s)"
@@ -426,7 +427,7 @@ def train(cfg: Any, experiment: Experiment | None = None, callbacks: Sequence[Ca
             if moved:
                 print(f"[mjx_morph] checkpoints {moved} moved to {run.path / 'checkpoints.orphaned'}", flush=True)
         run.truncate_metrics(latest or 0)      # rows after the checkpoint (or of a start that never saved one)
-        run.record_invocation(latest or 0, trainer.num_devices, exp.env.digest, linalg.resolve(cfg.env.linalg))
+        run.record_invocation(latest or 0, trainer.num_devices, exp.env.digest, chol)
         if latest is not None:
             print(f"[mjx_morph] resumed from {run.path / 'checkpoints' / str(latest)} (iteration {latest})",
                   flush=True)

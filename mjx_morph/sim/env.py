@@ -122,11 +122,9 @@ class EnvConfig:
                                         # an H200, none with "highest": docs/benchmarks.md, session 42)
     linalg: str = "auto"            # MJX's Cholesky factor / solve (Newton Hessian, mass matrix): "auto" (the
                                     # default: "pallas" on a GPU, "jax" elsewhere), "jax" (JAX's own: cuSOLVER /
-                                    # cuBLAS on a GPU, ~50 small kernels a factorisation) or "pallas" (one fused
-                                    # Pallas kernel a factorisation and a solve, sim/gpu_linalg.py: +15% on an
-                                    # H200's 64- and 256-env rollouts, a tie at 1,024). Chosen while the env's step
-                                    # is traced (sim/linalg.py); arithmetic only, so outside the model digest, and a
-                                    # resume may change it
+                                    # cuBLAS on a GPU) or "pallas" (sim/gpu_linalg.py's fused kernels); what each
+                                    # is and was measured to do: sim/linalg.py. Chosen while the env's step is
+                                    # traced; arithmetic only, so outside the model digest, and a resume may change it
 
 
 class Physics(NamedTuple):

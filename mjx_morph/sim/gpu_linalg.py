@@ -38,12 +38,11 @@ kernels as plain JAX, which is how the tests check them; on a GPU they lower thr
 either (tests lower for CUDA on a CPU to check that the kernels lower to Triton IR).
 
 How it is switched: `EnvConfig.linalg` ("auto", the default: these on a GPU, JAX's functions elsewhere; "jax":
-JAX's functions; "pallas": these), which MJX sees through `linalg.py`'s view while an env traces its physics.
-Measured on an H200 (docs/benchmarks.md, session 61): the first version's kernels compile and agree with cuSOLVER's
-to 6e-7, check_sim on the train set is unchanged, and the 64-env rollout ran 10% faster (the 1,024-env one 17%
-slower); with this solve +15% at 64 and 256 envs, a tie at 1,024; an R-MoMo run of 20 M steps on them learned no
-worse than two on jax (docs/results.md, session 62), which made them the GPU's default. `experiments/
-bench_cholesky.py` times the kernels alone, `experiments.bench_train mode=rollout env.linalg=pallas` the rollout.
+JAX's functions; "pallas": these), which MJX sees through `linalg.py`'s view while an env traces its physics;
+linalg.py's docstring says what was measured on a GPU and why these are its default. Session 61 also measured the
+first version's kernels (agreeing with cuSOLVER's to 6e-7; the 64-env rollout +10%, the 1,024-env one -17%), which
+this solve replaced. `experiments/bench_cholesky.py` times the kernels alone, `experiments.bench_train
+mode=rollout env.linalg=pallas` the rollout.
 """
 from __future__ import annotations
 
