@@ -9,9 +9,12 @@ test module, and each value built once per session, starts from empty in-memory 
 program lowers as in a fresh process and is compiled once per suite.
 
 Every program, in this process and in the processes the tests start (they inherit the environment), compiles with
-XLA's newer CPU fusion emitters off (`XLA_FLAGS`, set before JAX starts; `FAST_COMPILE` turns them off too): the
-suite runs ~25% shorter with it. It slows the CPU demo's optimised train step, so only the tests set it for every
-program (the measurements: docs/benchmarks.md, "CPU notes", session 36)."""
+`FAST_COMPILE`'s options (`XLA_FLAGS`, set before JAX starts): XLA's newer CPU fusion emitters off (the suite ran
+~25% shorter, session 36), and LLVM at optimisation level 0 without its expensive passes, which only the programs
+jitted with `FAST_COMPILE` had before, not the eager operations (~5,000 small programs a suite: parameter
+initialisation, indexing) nor any program compiled without it (19:04 -> 14:39 from an empty cache, session 65).
+The first slows the CPU demo's optimised train step (session 36) and the second makes slower code by design, so only
+the tests set them for every program (the measurements: docs/benchmarks.md, "CPU notes", sessions 36 and 65)."""
 from __future__ import annotations
 
 import fcntl
@@ -19,9 +22,11 @@ import json
 import os
 from pathlib import Path
 
-CPU_FLAGS = "--xla_cpu_use_fusion_emitters=false"
-if CPU_FLAGS not in os.environ.get("XLA_FLAGS", ""):
-    os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {CPU_FLAGS}".strip()
+#: FAST_COMPILE's options (mjx_morph/ppo/trainer.py) for every program of the suite, also those compiled without them
+CPU_FLAGS = ["--xla_cpu_use_fusion_emitters=false", "--xla_backend_optimization_level=0",
+             "--xla_llvm_disable_expensive_passes=true"]
+os.environ["XLA_FLAGS"] = " ".join([os.environ.get("XLA_FLAGS", ""),
+                                    *(f for f in CPU_FLAGS if f not in os.environ.get("XLA_FLAGS", ""))]).strip()
 
 import jax  # noqa: E402  (after XLA_FLAGS)
 import pytest
