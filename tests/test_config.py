@@ -543,3 +543,13 @@ def test_every_study_files_runs_compose_and_build_their_models():
             seen.add(over)
             model = make_model_for(compose_run_config(list(over)))
             assert model.arch == r.group[0], (f.stem, r.group)
+
+
+def test_the_suite_compiles_every_program_with_fast_compiles_options():
+    """tests/conftest.py sets FAST_COMPILE's options in XLA_FLAGS before JAX starts (it cannot import them from
+    mjx_morph, which imports JAX): the two lists must stay one."""
+    import os
+    from conftest import CPU_FLAGS
+    from mjx_morph.run import FAST_COMPILE
+    assert sorted(CPU_FLAGS) == sorted(f"--{k}={str(v).lower()}" for k, v in FAST_COMPILE.items())
+    assert all(f in os.environ["XLA_FLAGS"].split() for f in CPU_FLAGS)
