@@ -25,8 +25,8 @@ from pathlib import Path
 #: FAST_COMPILE's options (mjx_morph/ppo/trainer.py) for every program of the suite, also those compiled without them
 CPU_FLAGS = ["--xla_cpu_use_fusion_emitters=false", "--xla_backend_optimization_level=0",
              "--xla_llvm_disable_expensive_passes=true"]
-os.environ["XLA_FLAGS"] = " ".join([os.environ.get("XLA_FLAGS", ""),
-                                    *(f for f in CPU_FLAGS if f not in os.environ.get("XLA_FLAGS", ""))]).strip()
+_flags = os.environ.get("XLA_FLAGS", "")
+os.environ["XLA_FLAGS"] = " ".join([_flags, *(f for f in CPU_FLAGS if f not in _flags)]).strip()
 
 import jax  # noqa: E402  (after XLA_FLAGS)
 import pytest
