@@ -24,6 +24,20 @@ def load_tool(name: str):
         sys.path.pop(0)
 
 
+def stand_in_machine(gpu: Path) -> Path:
+    """A checkout as a GPU call sees it, with a stand-in wheel that pip installs, so that device_job.sh runs whole."""
+    import zipfile
+    (gpu / ".whl").mkdir(parents=True)
+    with zipfile.ZipFile(gpu / ".whl" / "stand_in-0.0.0-py3-none-any.whl", "w") as whl:
+        whl.writestr("stand_in-0.0.0.dist-info/METADATA", "Metadata-Version: 2.1\nName: stand-in\nVersion: 0.0.0\n")
+        whl.writestr("stand_in-0.0.0.dist-info/WHEEL",
+                     "Wheel-Version: 1.0\nGenerator: test\nRoot-Is-Purelib: true\nTag: py3-none-any\n")
+        whl.writestr("stand_in-0.0.0.dist-info/RECORD", "stand_in-0.0.0.dist-info/METADATA,,\n"
+                     "stand_in-0.0.0.dist-info/WHEEL,,\nstand_in-0.0.0.dist-info/RECORD,,\n")
+    (gpu / "tools").symlink_to(SCRIPT.parent)
+    return gpu
+
+
 def test_continue_refuses_a_fresh_machine_and_runs_nothing(tmp_path):
     marker = tmp_path / "ran"
     r = job("--continue", "fp32", "touch", str(marker), cwd=tmp_path, out=tmp_path)
@@ -50,6 +64,30 @@ def test_the_time_limit_leaves_room_to_stop_and_pack(tmp_path):
     assert r.returncode == 2 and "DEVICE_JOB_LIMIT_S=9m: expected whole seconds" in r.stderr
     r = job("name", "true", cwd=tmp_path, out=tmp_path, DEVICE_JOB_LIMIT_S="500")
     assert "too little" not in r.stderr and "the wheels did not install" in r.stderr
+
+
+def test_the_carried_cache_is_unpacked_on_a_fresh_machine_even_by_a_continuing_call(tmp_path):
+    """The first training call after `place` calls is a --continue call on a fresh machine (the placed run is put
+    back, so it runs): it starts from the carried compilation cache too (session 66's plan found that it did not, and
+    would have compiled R-MoMo's train step anew, ~140 s); a --continue call on a warm machine leaves the cache be."""
+    import sys
+    xla_cache = load_tool("xla_cache")
+    earlier = tmp_path / "earlier"
+    earlier.mkdir()
+    (earlier / "jit_train_step-abc").write_bytes(b"program")
+    gpu = stand_in_machine(tmp_path / "gpu")
+    (gpu / ".gpu").mkdir()
+    xla_cache.pack(earlier, gpu / ".gpu" / "xla-cache.tar.gz")
+    (gpu / "runs" / "studies" / "paper" / "ft-rmomo-main-s3").mkdir(parents=True)     # as `place` would put back
+    cache = tmp_path / "xla"
+    env = {"PATH": f"{Path(sys.executable).parent}:/usr/bin:/bin", "DEVICE_JOB_SITE": str(tmp_path / "site"),
+           "MJX_MORPH_XLA_CACHE": str(cache)}
+    r = job("--continue", "rm3d", "true", cwd=gpu, out=tmp_path, **env)
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert (cache / "jit_train_step-abc").read_bytes() == b"program"
+    (cache / "jit_train_step-abc").unlink()                 # a warm machine's cache, as its calls left it
+    r = job("--continue", "rm3e", "true", cwd=gpu, out=tmp_path, **env)
+    assert r.returncode == 0 and not (cache / "jit_train_step-abc").exists(), r.stdout + r.stderr
 
 
 def test_xla_cache_travels_oldest_programs_first_within_its_size(tmp_path):
@@ -328,17 +366,8 @@ def test_the_move_call_packs_on_the_machine_and_sends_back_what_fits(tmp_path):
     byte."""
     import os
     import sys
-    import zipfile
     move_runs = load_tool("move_runs")
-    gpu = tmp_path / "gpu"
-    (gpu / ".whl").mkdir(parents=True)
-    with zipfile.ZipFile(gpu / ".whl" / "stand_in-0.0.0-py3-none-any.whl", "w") as whl:    # a wheel pip installs
-        whl.writestr("stand_in-0.0.0.dist-info/METADATA", "Metadata-Version: 2.1\nName: stand-in\nVersion: 0.0.0\n")
-        whl.writestr("stand_in-0.0.0.dist-info/WHEEL",
-                     "Wheel-Version: 1.0\nGenerator: test\nRoot-Is-Purelib: true\nTag: py3-none-any\n")
-        whl.writestr("stand_in-0.0.0.dist-info/RECORD", "stand_in-0.0.0.dist-info/METADATA,,\n"
-                     "stand_in-0.0.0.dist-info/WHEEL,,\nstand_in-0.0.0.dist-info/RECORD,,\n")
-    (gpu / "tools").symlink_to(SCRIPT.parent)
+    gpu = stand_in_machine(tmp_path / "gpu")
     run = gpu / "runs" / "studies" / "paper" / "ft-rmemo-main-s9"
     (run / "checkpoints" / "65").mkdir(parents=True)
     (run / "config.yaml").write_text("arch: rmemo\nseed: 9\n")

@@ -124,7 +124,8 @@ export PYTHONPATH=$site:$PWD PYTHONUNBUFFERED=1
 # JAX's compilation cache: a fresh machine starts from the programs an earlier lease brought back (DEVICE_JOB_SAVE_XLA=1
 # packs them into $OUT/xla-cache.tar.gz; copy it to .gpu/ here), which serve where the GPU model and code are the same
 export MJX_MORPH_XLA_CACHE=${MJX_MORPH_XLA_CACHE:-$HOME/.cache/mjx_morph/xla}
-if [ $continuing = 0 ] && [ -f .gpu/xla-cache.tar.gz ]; then
+# (--continue calls too where the machine has no cache yet: the first training call after `place` calls is one)
+if [ -f .gpu/xla-cache.tar.gz ] && { [ $continuing = 0 ] || [ ! -d "$MJX_MORPH_XLA_CACHE" ]; }; then
   python3 tools/xla_cache.py unpack .gpu/xla-cache.tar.gz "$MJX_MORPH_XLA_CACHE"
 fi
 if [ -d .gpu/pairs ]; then      # the searches `prepare` made (read only if selfcontact.py has not changed since)
