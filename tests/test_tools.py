@@ -449,7 +449,8 @@ def test_per_gpu_gives_each_command_its_gpu_and_ctrl_c_and_waits_for_all(tmp_pat
 def test_home_brings_the_last_calls_runs_each_calls_log_and_the_newest_cache(tmp_path):
     """`device_job.sh home` (tools/bring_home.py), here after a lease: the runs of the last call that packed any
     (each call packs all the machine's runs, so the last is whole), a study's runs directly in the results folder,
-    each call's log as call<k>.log, the newest cache into .gpu/; an existing results folder is refused untouched,
+    each call's log as call<k>.log, the newest cache into .gpu/, runs short of their stop named and left out (no
+    report may read them as finished); an existing results folder is refused untouched,
     and calls that brought no run are an error that names them."""
     import tarfile
     home = load_tool("bring_home")
@@ -459,7 +460,7 @@ def test_home_brings_the_last_calls_runs_each_calls_log_and_the_newest_cache(tmp
         src = tmp_path / f"machine{k}"
         for run, iterations in runs.items():
             (src / run).mkdir(parents=True)
-            (src / run / "config.yaml").write_text("arch: rmomo\n")
+            (src / run / "config.yaml").write_text("arch: rmomo\ntotal_steps: 100000000\nstop_at: 245\n")
             (src / run / "metrics.csv").write_text("iteration\n" + "".join(f"{i}\n" for i in range(1, iterations + 1)))
         c.mkdir()
         (c / "zs.log").write_text(f"call {k}\n")
@@ -471,7 +472,8 @@ def test_home_brings_the_last_calls_runs_each_calls_log_and_the_newest_cache(tmp
             (c / "xla-cache.tar.gz").write_bytes(f"cache {k}".encode())
         return c
 
-    calls = [call(1, {"ab/ft-rmomo-s0": 50}, cache=True), call(2, {"ab/ft-rmomo-s0": 245, "ab/ft-rmomo-s1": 245}),
+    calls = [call(1, {"ab/ft-rmomo-s0": 50}, cache=True),
+             call(2, {"ab/ft-rmomo-s0": 245, "ab/ft-rmomo-s1": 245, "ab/ft-rmomo-s3": 233}),   # s3 moved on
              call(3, {}, cache=True)]                                  # the third: a `send` call, say, with a cache
     (calls[2] / "move.ab.ft-rmomo-s2.tar.gz.000").write_bytes(b"part")
     dest, gpu = tmp_path / "results" / "ab_s51", tmp_path / ".gpu"
@@ -482,14 +484,17 @@ def test_home_brings_the_last_calls_runs_each_calls_log_and_the_newest_cache(tmp
     assert len((dest / "ft-rmomo-s0" / "metrics.csv").read_text().splitlines()) == 246      # the whole run
     assert (dest / "call2.log").read_text() == "call 2\n" and (gpu / "xla-cache.tar.gz").read_bytes() == b"cache 3"
     assert done[0].startswith(f"2 runs from {calls[1] / 'zs-runs.tar.gz'}")
+    assert done[1] == "left out, not finished (they come home with the lease that finishes them): " \
+                      "ft-rmomo-s3 (iteration 233 of 245)"
     with pytest.raises(SystemExit, match="already exists"):
         home.bring_home(dest, calls, gpu)
     assert len((dest / "ft-rmomo-s0" / "metrics.csv").read_text().splitlines()) == 246
     with pytest.raises(SystemExit, match="no <name>-runs.tar.gz in .*files3: no run came back"):
         home.bring_home(tmp_path / "results" / "other", calls[2:], gpu)
-    two = call(4, {"ab/ft-rmomo-s0": 3, "cd/ft-modumorph-s0": 3})            # two studies on one lease (per_gpu.sh)
+    two = call(4, {"ab/ft-rmomo-s0": 245, "cd/ft-modumorph-s0": 245, "ef/ft-metamorph-s0": 0})   # per_gpu.sh
     home.bring_home(tmp_path / "results" / "two", [two], None)
     assert (tmp_path / "results" / "two" / "ab" / "ft-rmomo-s0" / "config.yaml").exists()
     assert (tmp_path / "results" / "two" / "cd" / "ft-modumorph-s0" / "config.yaml").exists()
+    assert not (tmp_path / "results" / "two" / "ef").exists()     # a study whose only run had not begun
     r = job("home", str(tmp_path / "results" / "x"), cwd=tmp_path)
     assert r.returncode == 2 and "usage: bash tools/device_job.sh home <results folder> <files_at>" in r.stderr

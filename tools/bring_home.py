@@ -4,7 +4,9 @@
 
 - the runs: every call packs the small artefacts of all the runs on its machine (`<name>-runs.tar.gz`), so the last
   call that brought any holds them whole; they land in the results folder (a study's `<study>/<run>` as
-  `<folder>/<run>`; several studies' runs, or runs outside a study, under their own names);
+  `<folder>/<run>`; several studies' runs, or runs outside a study, under their own names), except those that
+  stopped short of the iteration their config ends them at (a run to be moved or continued by a later lease):
+  named and left out, so that no report reads a partial run as finished;
 - each call's log (`<name>.log`) as `call<k>.log` (k: the call's place in the order given);
 - the newest compilation cache (`xla-cache.tar.gz`) into .gpu/, where the next lease's first call starts from it
   (device_job.sh then fits it to the room the checkout leaves);
@@ -43,8 +45,21 @@ def bring_home(dest: Path, calls: list[Path], gpu_dir: Path | None = Path(".gpu"
         tops = sorted(Path(tmp).iterdir())
         one_study = len(tops) == 1 and tops[0].is_dir() and not (tops[0] / "config.yaml").exists()
         shutil.copytree(tops[0] if one_study else Path(tmp), dest)
+    unfinished = []
+    for run in sorted(p.parent for p in dest.rglob("config.yaml")):
+        reached, last = progress(run)
+        if reached < last:
+            shutil.rmtree(run)
+            unfinished.append(f"{run.relative_to(dest)} (iteration {reached} of {last})")
+            for parent in run.parents:                        # a study's folder that held only this run
+                if parent == dest or any(parent.iterdir()):
+                    break
+                parent.rmdir()
     runs = sorted(p.parent.relative_to(dest) for p in dest.rglob("config.yaml"))
-    done.append(f"{len(runs)} runs from {tars[-1]} -> {dest}: {', '.join(map(str, runs))}")
+    done.append(f"{len(runs)} runs from {tars[-1]} -> {dest}" + (f": {', '.join(map(str, runs))}" if runs else ""))
+    if unfinished:
+        done.append(f"left out, not finished (they come home with the lease that finishes them): "
+                    f"{', '.join(unfinished)}")
     for k, c in enumerate(calls, 1):
         logs = sorted(c.glob("*.log"))
         for log in logs:
@@ -61,6 +76,15 @@ def bring_home(dest: Path, calls: list[Path], gpu_dir: Path | None = Path(".gpu"
         shutil.copy(caches[-1], gpu_dir / "xla-cache.tar.gz")
         done.append(f"{caches[-1]} -> {gpu_dir / 'xla-cache.tar.gz'}")
     return done
+
+
+def progress(run: Path) -> tuple[int, int]:
+    """(the last iteration in the run's metrics.csv, 0 without one; the iteration its config ends it at)."""
+    from mjx_morph.eval.runs import read_metrics
+    from mjx_morph.run import read_run_config
+    iterations = read_metrics(run).get("iteration")
+    reached = int(iterations[-1]) if iterations is not None else 0
+    return reached, read_run_config(run / "config.yaml").last_iteration()
 
 
 def report_tables(dest: Path, titles=("Rates per phase", "Health")) -> str:
@@ -81,7 +105,8 @@ def main(argv: list[str]) -> None:
     dest = Path(argv[0])
     for line in bring_home(dest, [Path(a) for a in argv[1:]]):
         print(f"[home] {line}")
-    print(report_tables(dest))
+    if any(dest.rglob("config.yaml")):
+        print(report_tables(dest))
 
 
 if __name__ == "__main__":
