@@ -831,7 +831,8 @@ def test_rates_per_phase_are_medians_without_the_slow_iterations(tmp_path):
 def test_health_flags_what_a_run_should_be_read_for(tmp_path):
     """"Health" (health.csv): per run over every iteration, the first minibatch's largest |ratio - 1| and |KL|, the
     unstable episodes, the first KL stop, the largest |value_mean|, the non-finite iterations and the physics of its
-    calls; flagged: a ratio off 1 beyond Run.RATIO_TOLERANCE, non-finite metrics, unstable episodes, two physics."""
+    calls; flagged: a ratio off 1 beyond Run.RATIO_TOLERANCE, non-finite metrics, unstable episodes, two physics, a
+    run short of the iteration its config ends it at."""
     rng = np.random.default_rng(1)
     for name, sick in (("ft-rmomo-s0", False), ("ft-rmomo-s1", True)):
         d, _ = make_run(tmp_path / "runs", name, seed=int(sick), evals=(), metrics=False)
@@ -846,6 +847,9 @@ def test_health_flags_what_a_run_should_be_read_for(tmp_path):
             w = csv.DictWriter(fh, fieldnames=list(rows[0]))
             w.writeheader()
             w.writerows(rows)
+        if sick:                                          # a run a time limit stopped, to go on in a later lease
+            cfg = yaml.safe_load((d / "config.yaml").read_text())
+            (d / "config.yaml").write_text(yaml.safe_dump({**cfg, "total_steps": 100_000_000, "stop_at": 245}))
         digests = ["a3c4a671dd355561", "d38de03bfa874fe9" if sick else "a3c4a671dd355561"]
         (d / "devices.yaml").write_text(yaml.safe_dump([dict(start_iteration=0, model_digest=digests[0]),
                                                         dict(start_iteration=12, model_digest=digests[1])]))
@@ -856,7 +860,8 @@ def test_health_flags_what_a_run_should_be_read_for(tmp_path):
     assert float(sick["first_ratio_off"]) == pytest.approx(2e-3) and int(sick["unstable_episodes"]) == 3
     assert int(sick["nonfinite_iterations"]) == 1 and sick["physics"] == "a3c4a671 → d38de03b"   # as the runs table
     assert sick["flags"] == ("first-minibatch ratio off 1 by 2.0e-03; non-finite metrics in 1 iterations; "
-                             "3 unstable episodes; physics changed: a3c4a671 → d38de03b")
+                             "3 unstable episodes; physics changed: a3c4a671 → d38de03b; "
+                             "stopped at iteration 20 of 245")
     assert "| ok |" in (tmp_path / "out" / "report.md").read_text()
 
 

@@ -30,6 +30,7 @@ from pathlib import Path
 def bring_home(dest: Path, calls: list[Path], gpu_dir: Path | None = Path(".gpu")) -> list[str]:
     """Copy the runs, the logs and the newest cache of `calls` (folders of the device tool's files, in the order the
     calls ran) as the module says; returns what was done, a line each. Raises SystemExit naming the problem."""
+    from mjx_morph.eval.runs import read_run
     if dest.exists():
         raise SystemExit(f"{dest}: already exists; bring a lease home into a new folder (results/<study>_s<session>)")
     for c in calls:
@@ -47,10 +48,10 @@ def bring_home(dest: Path, calls: list[Path], gpu_dir: Path | None = Path(".gpu"
         shutil.copytree(tops[0] if one_study else Path(tmp), dest)
     unfinished = []
     for run in sorted(p.parent for p in dest.rglob("config.yaml")):
-        reached, last = progress(run)
-        if reached < last:
+        short = read_run(run).short_of_stop()
+        if short:
             shutil.rmtree(run)
-            unfinished.append(f"{run.relative_to(dest)} (iteration {reached} of {last})")
+            unfinished.append(f"{run.relative_to(dest)} (iteration {short[0]} of {short[1]})")
             for parent in run.parents:                        # a study's folder that held only this run
                 if parent == dest or any(parent.iterdir()):
                     break
@@ -58,8 +59,8 @@ def bring_home(dest: Path, calls: list[Path], gpu_dir: Path | None = Path(".gpu"
     runs = sorted(p.parent.relative_to(dest) for p in dest.rglob("config.yaml"))
     done.append(f"{len(runs)} runs from {tars[-1]} -> {dest}" + (f": {', '.join(map(str, runs))}" if runs else ""))
     if unfinished:
-        done.append(f"left out, not finished (they come home with the lease that finishes them): "
-                    f"{', '.join(unfinished)}")
+        done.append(f"left out, not finished (they come home with the lease that finishes them; to keep one as it is, "
+                    f"take it from {tars[-1]}): {', '.join(unfinished)}")
     for k, c in enumerate(calls, 1):
         logs = sorted(c.glob("*.log"))
         for log in logs:
@@ -76,15 +77,6 @@ def bring_home(dest: Path, calls: list[Path], gpu_dir: Path | None = Path(".gpu"
         shutil.copy(caches[-1], gpu_dir / "xla-cache.tar.gz")
         done.append(f"{caches[-1]} -> {gpu_dir / 'xla-cache.tar.gz'}")
     return done
-
-
-def progress(run: Path) -> tuple[int, int]:
-    """(the last iteration in the run's metrics.csv, 0 without one; the iteration its config ends it at)."""
-    from mjx_morph.eval.runs import read_metrics
-    from mjx_morph.run import read_run_config
-    iterations = read_metrics(run).get("iteration")
-    reached = int(iterations[-1]) if iterations is not None else 0
-    return reached, read_run_config(run / "config.yaml").last_iteration()
 
 
 def report_tables(dest: Path, titles=("Rates per phase", "Health")) -> str:

@@ -239,6 +239,19 @@ class Run:
     def iterations(self) -> int:
         return len(self.metrics.get("iteration", []))
 
+    def short_of_stop(self) -> tuple[int, int] | None:
+        """(the last iteration in metrics.csv, the one config.yaml ends the run at: RunConfig.last_iteration) where
+        the first is short of the second: a run stopped by a time limit, to be resumed or moved to a later lease;
+        None where it got there, or where config.yaml no longer fits today's schema and cannot say."""
+        from ..run.config import ConfigError, read_run_config      # hydra: loaded only when asked
+        try:
+            end = read_run_config(self.path / "config.yaml").last_iteration()
+        except ConfigError:
+            return None
+        it = self.metrics.get("iteration")
+        reached = int(it[-1]) if it is not None and len(it) and np.isfinite(it[-1]) else 0
+        return (reached, end) if reached < end else None
+
     def eval_steps(self, tag: str) -> float | None:
         """The env steps of the checkpoint evaluated in eval/<tag>.json (None: no such file, or one that does not
         say)."""
@@ -348,6 +361,9 @@ class Run:
             (f"non-finite metrics in {h['nonfinite']} iterations", h["nonfinite"] > 0),
             (f"{h['unstable']} unstable episodes", bool(h["unstable"])),
             (f"physics changed: {' → '.join(d[:8] for d in self.physics)}", len(self.physics) > 1)] if on]
+        short = self.short_of_stop()
+        if short:
+            h["flags"].append(f"stopped at iteration {short[0]} of {short[1]}")
         return h
 
     def wall_hours(self) -> float:
