@@ -243,9 +243,9 @@ class Run:
         """(the last iteration in metrics.csv, the one config.yaml ends the run at: RunConfig.last_iteration) where
         the first is short of the second: a run stopped by a time limit, to be resumed or moved to a later lease;
         None where it got there, or where config.yaml no longer fits today's schema and cannot say."""
-        from ..run.config import ConfigError, read_run_config      # hydra: loaded only when asked
+        from ..run.config import ConfigError, to_schema      # hydra: loaded only when asked
         try:
-            end = read_run_config(self.path / "config.yaml").last_iteration()
+            end = to_schema(self.cfg).last_iteration()
         except ConfigError:
             return None
         it = self.metrics.get("iteration")
