@@ -90,6 +90,34 @@ def test_the_carried_cache_is_unpacked_on_a_fresh_machine_even_by_a_continuing_c
     assert r.returncode == 0 and not (cache / "jit_train_step-abc").exists(), r.stdout + r.stderr
 
 
+def test_the_lease_clock_ends_a_command_at_its_time_after_the_machines_first_call(tmp_path):
+    """DEVICE_JOB_UNTIL_S counts from the machine's first call (noted once, in .lease-start), so that a batch's last
+    call can spend what the calls before it left; a time already past runs nothing, and the artefacts still pack."""
+    import sys
+    import time
+    gpu = stand_in_machine(tmp_path / "gpu")
+    env = {"PATH": f"{Path(sys.executable).parent}:/usr/bin:/bin", "DEVICE_JOB_SITE": str(tmp_path / "site")}
+    r = job("place", "nowhere", cwd=gpu, out=tmp_path, **env)             # a first call, even a failing one
+    first = int((gpu / ".lease-start").read_text())
+    assert abs(first - time.time()) < 5
+    (gpu / ".lease-start").write_text(f"{first - 100}\n")                # as if the first call was 100 s ago
+    r = job("name", "true", cwd=gpu, out=tmp_path, **env)
+    assert r.returncode == 0 and int((gpu / ".lease-start").read_text()) == first - 100, r.stdout + r.stderr
+    assert "the machine's first call began 10" in (tmp_path / "name.log").read_text()
+    start = time.monotonic()
+    r = job("slow", "sleep", "60", cwd=gpu, out=tmp_path, DEVICE_JOB_UNTIL_S="104", **env)
+    assert r.returncode == 124 and time.monotonic() - start < 30, r.stdout + r.stderr
+    assert "interrupted 104 s after the machine's first call (DEVICE_JOB_UNTIL_S)" in r.stdout
+    marker = tmp_path / "ran"
+    r = job("late", "touch", str(marker), cwd=gpu, out=tmp_path, DEVICE_JOB_UNTIL_S="60", **env)
+    assert r.returncode == 124 and not marker.exists()
+    assert "no time left before 60 s after the machine's first call" in (tmp_path / "late.log").read_text()
+    r = job("ok", "touch", str(marker), cwd=gpu, out=tmp_path, DEVICE_JOB_UNTIL_S="900", **env)
+    assert r.returncode == 0 and marker.exists() and "interrupted" not in r.stdout
+    r = job("bad", "true", cwd=gpu, out=tmp_path, DEVICE_JOB_UNTIL_S="1e3", **env)
+    assert r.returncode == 2 and "DEVICE_JOB_UNTIL_S=1e3: expected whole seconds" in r.stderr
+
+
 def test_xla_cache_travels_oldest_programs_first_within_its_size(tmp_path):
     """tools/xla_cache.py: pack takes the cache's files oldest first while they fit max MiB (a lease compiles its
     training programs first; one too large is left out, smaller later ones still go), unpack puts them back byte for

@@ -8,7 +8,8 @@
 #   same version of mjx_morph/sim/selfcontact.py, so rerun `prepare` after a change to it): both git-ignored, both carried (carry: [".whl", ".gpu"]).
 # There, in every call:      bash tools/device_job.sh <name> <command ...>
 #   (within DEVICE_JOB_LIMIT_S, default 560 s of the call's 600, at most 570: then Ctrl-C, so that a run saves a
-#   checkpoint; a command still running 20 s later is killed, and packing its artefacts takes the last seconds)
+#   checkpoint; a command still running 20 s later is killed, and packing its artefacts takes the last seconds; or
+#   earlier, at DEVICE_JOB_UNTIL_S seconds after the machine's first call: the lease's clock, below)
 #   installs the wheels, points the robots at .gpu/unimals_100, runs the command (XLA's W/I log lines dropped) with
 #   its output in $OUT/<name>.log, then packs the small artefacts of every run under runs/ (config, metrics.csv,
 #   eval/*.json; no checkpoints) into $OUT/<name>-runs.tar.gz: `tar xzf <it> -C results/` unpacks a study's runs
@@ -81,6 +82,12 @@ fi
 #   there, the next lease's first calls, one per folder: bash tools/device_job.sh place .mv1   (carry: [".mv1"]),
 #     which keeps the parts in moving/ on the machine; then every later call puts the run back before its command
 #     (exit status 4, nothing run, where parts are missing or corrupt), and the study resumes it.
+# The lease's clock: a machine's first call (`place`, `send` or a command) notes the time in .lease-start, which stays
+# on the warm machine (git-ignored, like runs/) and goes back with it. DEVICE_JOB_UNTIL_S=<s> interrupts the command
+# that many seconds after that first call (or at DEVICE_JOB_LIMIT_S, where that comes first): a batch's last call then
+# spends what the calls before it left, however long they ran. A lease also counts its start and each call's
+# transfers (~150-250 s a batch, docs/results.md): take them off the budget when choosing <s>. Every call logs the clock.
+[ -f .lease-start ] || date +%s > .lease-start
 need_out() { [ -n "$OUT" ] || { echo "\$OUT is not set: run this through the device tool" >&2; exit 2; }; }
 if [ "$1" = place ]; then
   [ $# -eq 2 ] || { echo "usage: bash tools/device_job.sh place <folder of parts>" >&2; exit 2; }
@@ -116,6 +123,9 @@ if [ "$limit" -gt $most ]; then
   echo "[device_job] DEVICE_JOB_LIMIT_S=$limit leaves too little of the call's 600 s to stop and pack: $most used" >&2
   limit=$most
 fi
+until_s=${DEVICE_JOB_UNTIL_S:-}
+[ -z "$until_s" ] || [[ "$until_s" =~ ^[0-9]+$ ]] ||
+  { echo "DEVICE_JOB_UNTIL_S=$until_s: expected whole seconds after the machine's first call" >&2; exit 2; }
 site=${DEVICE_JOB_SITE:-/tmp/site}      # where the carried wheels install (a test points it elsewhere)
 python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target "$site" .whl/*.whl \
   || { echo "the wheels did not install: carry .whl (bash tools/device_job.sh prepare)" >&2; exit 1; }
@@ -136,9 +146,19 @@ nvidia-smi --query-gpu=index,name,memory.used --format=csv,noheader
 # the device tool kills a call at its limit (600 s) and nothing comes back from a killed call: interrupt the command
 # first (Ctrl-C: a run saves a checkpoint, a study waits for its workers to), leaving time to bring the artefacts home
 left=$(( limit - SECONDS ))
-timeout -s INT -k 20 $left "$@" 2>&1 | grep -v --line-buffered "^[WI]0000 " | tee "$OUT/$name.log"
-rc=${PIPESTATUS[0]}
-[ $rc -eq 124 ] && echo "[device_job] $name: interrupted after $limit s of the call (DEVICE_JOB_LIMIT_S)"
+held=$(( $(date +%s) - $(cat .lease-start) ))
+echo "[device_job] $name: the machine's first call began $held s ago" | tee "$OUT/$name.log"
+stop="after $limit s of the call (DEVICE_JOB_LIMIT_S)"
+if [ -n "$until_s" ] && [ $(( until_s - held )) -lt $left ]; then
+  left=$(( until_s - held )); stop="$until_s s after the machine's first call (DEVICE_JOB_UNTIL_S)"
+fi
+if [ $left -gt 0 ]; then      # (`timeout 0` would never stop it)
+  timeout -s INT -k 20 $left "$@" 2>&1 | grep -v --line-buffered "^[WI]0000 " | tee -a "$OUT/$name.log"
+  rc=${PIPESTATUS[0]}
+else
+  echo "[device_job] $name: no time left before $stop: the command was not run" | tee -a "$OUT/$name.log"; rc=124
+fi
+[ $rc -eq 124 ] && [ $left -gt 0 ] && echo "[device_job] $name: interrupted $stop"
 dirs=$(ls -d runs/studies/* runs/* 2>/dev/null | grep -vx runs/studies | paste -sd, -)   # a study's runs: <study>/<run>
 [ -n "$dirs" ] && python3 -m experiments.collect "runs=[$dirs]" out="$OUT/$name-runs.tar.gz" 2>&1 | tail -1
 [ "${DEVICE_JOB_SAVE_XLA:-0}" = 1 ] && python3 tools/xla_cache.py pack "$MJX_MORPH_XLA_CACHE" "$OUT/xla-cache.tar.gz"
