@@ -506,14 +506,15 @@ def test_home_brings_the_last_calls_runs_each_calls_log_and_the_newest_cache(tmp
     (calls[2] / "move.ab.ft-rmomo-s2.tar.gz.000").write_bytes(b"part")
     dest, gpu = tmp_path / "results" / "ab_s51", tmp_path / ".gpu"
     done = home.bring_home(dest, calls, gpu)
-    assert any(line.startswith("1 parts of moved runs came too") and "move_runs.py stage" in line for line in done)
+    assert any(line.startswith("1 parts of moved runs came too") and f"move_runs.py stage {calls[2]} <" in line
+               for line in done)
     assert sorted(p.name for p in dest.iterdir()) == ["call1.log", "call2.log", "call3.log", "ft-rmomo-s0",
                                                       "ft-rmomo-s1"]
     assert len((dest / "ft-rmomo-s0" / "metrics.csv").read_text().splitlines()) == 246      # the whole run
     assert (dest / "call2.log").read_text() == "call 2\n" and (gpu / "xla-cache.tar.gz").read_bytes() == b"cache 3"
     assert done[0].startswith(f"2 runs from {calls[1] / 'zs-runs.tar.gz'}")
     assert done[1].startswith("left out, not finished") and str(calls[1] / "zs-runs.tar.gz") in done[1]
-    assert done[1].endswith(": ft-rmomo-s3 (iteration 233 of 245)")
+    assert done[1].endswith(": ab/ft-rmomo-s3 (iteration 233 of 245)")
     with pytest.raises(SystemExit, match="already exists"):
         home.bring_home(dest, calls, gpu)
     assert len((dest / "ft-rmomo-s0" / "metrics.csv").read_text().splitlines()) == 246
@@ -524,5 +525,11 @@ def test_home_brings_the_last_calls_runs_each_calls_log_and_the_newest_cache(tmp
     assert (tmp_path / "results" / "two" / "ab" / "ft-rmomo-s0" / "config.yaml").exists()
     assert (tmp_path / "results" / "two" / "cd" / "ft-modumorph-s0" / "config.yaml").exists()
     assert not (tmp_path / "results" / "two" / "ef").exists()     # a study whose only run had not begun
+    # two studies, one of them unfinished (session 67: R-MoMo finished, ModuMorph moved on): the finished study's
+    # runs directly in the results folder, as with one study
+    mixed = call(5, {"ab/ft-rmomo-s3": 245, "cd/ft-modumorph-s3": 179})
+    done = home.bring_home(tmp_path / "results" / "mixed", [mixed], None)
+    assert sorted(p.name for p in (tmp_path / "results" / "mixed").iterdir()) == ["call1.log", "ft-rmomo-s3"]
+    assert done[1].endswith(": cd/ft-modumorph-s3 (iteration 179 of 245)")
     r = job("home", str(tmp_path / "results" / "x"), cwd=tmp_path)
     assert r.returncode == 2 and "usage: bash tools/device_job.sh home <results folder> <files_at>" in r.stderr

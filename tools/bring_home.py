@@ -40,22 +40,23 @@ def bring_home(dest: Path, calls: list[Path], gpu_dir: Path | None = Path(".gpu"
     if not tars:
         raise SystemExit(f"no <name>-runs.tar.gz in {', '.join(map(str, calls))}: no run came back")
     done = []
+    unfinished = []
     with tempfile.TemporaryDirectory() as tmp:
         with tarfile.open(tars[-1]) as tf:
             tf.extractall(tmp, filter="data")
+        for run in sorted(p.parent for p in Path(tmp).rglob("config.yaml")):
+            short = read_run(run).short_of_stop()
+            if short:
+                shutil.rmtree(run)
+                unfinished.append(f"{run.relative_to(tmp)} (iteration {short[0]} of {short[1]})")
+                for parent in run.parents:                    # a study's folder that held only this run
+                    if parent == Path(tmp) or any(parent.iterdir()):
+                        break
+                    parent.rmdir()
+        # one study left (the others' runs all unfinished, session 67): its runs directly in the results folder
         tops = sorted(Path(tmp).iterdir())
         one_study = len(tops) == 1 and tops[0].is_dir() and not (tops[0] / "config.yaml").exists()
         shutil.copytree(tops[0] if one_study else Path(tmp), dest)
-    unfinished = []
-    for run in sorted(p.parent for p in dest.rglob("config.yaml")):
-        short = read_run(run).short_of_stop()
-        if short:
-            shutil.rmtree(run)
-            unfinished.append(f"{run.relative_to(dest)} (iteration {short[0]} of {short[1]})")
-            for parent in run.parents:                        # a study's folder that held only this run
-                if parent == dest or any(parent.iterdir()):
-                    break
-                parent.rmdir()
     runs = sorted(p.parent.relative_to(dest) for p in dest.rglob("config.yaml"))
     done.append(f"{len(runs)} runs from {tars[-1]} -> {dest}" + (f": {', '.join(map(str, runs))}" if runs else ""))
     if unfinished:
@@ -68,9 +69,10 @@ def bring_home(dest: Path, calls: list[Path], gpu_dir: Path | None = Path(".gpu"
             shutil.copy(log, dest / name)
             done.append(f"{log} -> {dest / name}")
     parts = [x for c in calls for x in c.glob("move.*.tar.gz.[0-9][0-9][0-9]")]
-    if parts:
+    if parts:      # the calls that hold parts (a later `send` call's, not given here, may hold the rest)
+        holders = [str(c) for c in calls if any(x.parent == c for x in parts)]
         done.append(f"{len(parts)} parts of moved runs came too: stage them for the next lease with python3 "
-                    f"tools/move_runs.py stage {' '.join(map(str, calls))} .mv")
+                    f"tools/move_runs.py stage {' '.join(holders)} <the folders of any send calls after them> .mv")
     caches = [x for c in calls for x in c.glob("xla-cache.tar.gz")]
     if caches and gpu_dir is not None:
         gpu_dir.mkdir(exist_ok=True)
