@@ -478,7 +478,8 @@ def test_home_brings_the_last_calls_runs_each_calls_log_and_the_newest_cache(tmp
     """`device_job.sh home` (tools/bring_home.py), here after a lease: the runs of the last call that packed any
     (each call packs all the machine's runs, so the last is whole), a study's runs directly in the results folder,
     each call's log as call<k>.log, the newest cache into .gpu/, runs short of their stop named and left out (no
-    report may read them as finished); an existing results folder is refused untouched,
+    report may read them as finished), a run already on file not brought twice but its new evaluations added to it;
+    an existing results folder is refused untouched,
     and calls that brought no run are an error that names them."""
     import tarfile
     home = load_tool("bring_home")
@@ -520,9 +521,9 @@ def test_home_brings_the_last_calls_runs_each_calls_log_and_the_newest_cache(tmp
     assert len((dest / "ft-rmomo-s0" / "metrics.csv").read_text().splitlines()) == 246
     with pytest.raises(SystemExit, match="no <name>-runs.tar.gz in .*files3: no run came back"):
         home.bring_home(tmp_path / "results" / "other", calls[2:], gpu)
-    two = call(4, {"ab/ft-rmomo-s0": 245, "cd/ft-modumorph-s0": 245, "ef/ft-metamorph-s0": 0})   # per_gpu.sh
+    two = call(4, {"ab/ft-rmomo-s5": 245, "cd/ft-modumorph-s0": 245, "ef/ft-metamorph-s0": 0})   # per_gpu.sh
     home.bring_home(tmp_path / "results" / "two", [two], None)
-    assert (tmp_path / "results" / "two" / "ab" / "ft-rmomo-s0" / "config.yaml").exists()
+    assert (tmp_path / "results" / "two" / "ab" / "ft-rmomo-s5" / "config.yaml").exists()
     assert (tmp_path / "results" / "two" / "cd" / "ft-modumorph-s0" / "config.yaml").exists()
     assert not (tmp_path / "results" / "two" / "ef").exists()     # a study whose only run had not begun
     # two studies, one of them unfinished (session 67: R-MoMo finished, ModuMorph moved on): the finished study's
@@ -531,5 +532,25 @@ def test_home_brings_the_last_calls_runs_each_calls_log_and_the_newest_cache(tmp
     done = home.bring_home(tmp_path / "results" / "mixed", [mixed], None)
     assert sorted(p.name for p in (tmp_path / "results" / "mixed").iterdir()) == ["call1.log", "ft-rmomo-s3"]
     assert done[1].endswith(": cd/ft-modumorph-s3 (iteration 179 of 245)")
+    # a run on file already (a lease that only evaluated it, packing it beside another run): not brought twice; the
+    # evaluations its copy on file lacks join that copy, those it has stay as they are
+    again = call(6, {"ab/ft-rmomo-s3": 245, "cd/ft-modumorph-s4": 245})
+    kept = tmp_path / "results" / "mixed" / "ft-rmomo-s3"
+    (kept / "eval").mkdir()
+    (kept / "eval" / "test.json").write_text("on file")
+    with tarfile.open(again / "zs-runs.tar.gz", "w:gz") as tf:             # the runs again, with evaluations
+        src = tmp_path / "machine6"
+        (src / "ab" / "ft-rmomo-s3" / "eval").mkdir()
+        (src / "ab" / "ft-rmomo-s3" / "eval" / "test.json").write_text("again")
+        (src / "ab" / "ft-rmomo-s3" / "eval" / "variants.json").write_text("new")
+        for top in ("ab", "cd"):
+            tf.add(src / top, arcname=top)
+    done = home.bring_home(tmp_path / "results" / "again", [again], None)
+    assert sorted(p.name for p in (tmp_path / "results" / "again").iterdir()) == ["call1.log", "ft-modumorph-s4"]
+    assert (kept / "eval" / "variants.json").read_text() == "new" and (kept / "eval" / "test.json").read_text() == \
+        "on file"
+    assert done[0].endswith(": ft-modumorph-s4")
+    assert done[1] == (f"ab/ft-rmomo-s3: already on file at {kept}, not brought again; its new evaluations added "
+                       "there: variants.json")
     r = job("home", str(tmp_path / "results" / "x"), cwd=tmp_path)
     assert r.returncode == 2 and "usage: bash tools/device_job.sh home <results folder> <files_at>" in r.stderr

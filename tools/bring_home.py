@@ -6,7 +6,9 @@
   call that brought any holds them whole; they land in the results folder (a study's `<study>/<run>` as
   `<folder>/<run>`; several studies' runs, or runs outside a study, under their own names), except those that
   stopped short of the iteration their config ends them at (a run to be moved or continued by a later lease):
-  named and left out, so that no report reads a partial run as finished;
+  named and left out, so that no report reads a partial run as finished; and those already on file elsewhere in
+  the results folder's parent (the same name and metrics.csv: a run a lease only evaluated, or one packed beside
+  another): not brought twice, their evaluations that the copy on file lacks added to it;
 - each call's log (`<name>.log`) as `call<k>.log` (k: the call's place in the order given);
 - the newest compilation cache (`xla-cache.tar.gz`) into .gpu/, where the next lease's first call starts from it
   (device_job.sh then fits it to the room the checkout leaves);
@@ -47,18 +49,27 @@ def bring_home(dest: Path, calls: list[Path], gpu_dir: Path | None = Path(".gpu"
         for run in sorted(p.parent for p in Path(tmp).rglob("config.yaml")):
             short = read_run(run).short_of_stop()
             if short:
-                shutil.rmtree(run)
                 unfinished.append(f"{run.relative_to(tmp)} (iteration {short[0]} of {short[1]})")
-                for parent in run.parents:                    # a study's folder that held only this run
-                    if parent == Path(tmp) or any(parent.iterdir()):
-                        break
-                    parent.rmdir()
+                drop(run, Path(tmp))
+        # a run already on file (its name and metrics.csv the same, elsewhere in the results root: a lease that only
+        # evaluated it, or packed it beside another run) is not brought twice; evaluations it lacks join it there
+        for run in sorted(p.parent for p in Path(tmp).rglob("config.yaml")):
+            kept = on_file(run, dest.parent)
+            if kept is None:
+                continue
+            added = [e for e in sorted((run / "eval").glob("*.json")) if not (kept / "eval" / e.name).exists()]
+            for e in added:
+                (kept / "eval").mkdir(exist_ok=True)
+                shutil.copy(e, kept / "eval" / e.name)
+            done.append(f"{run.relative_to(tmp)}: already on file at {kept}, not brought again"
+                        + (f"; its new evaluations added there: {', '.join(e.name for e in added)}" if added else ""))
+            drop(run, Path(tmp))
         # one study left (the others' runs all unfinished, session 67): its runs directly in the results folder
         tops = sorted(Path(tmp).iterdir())
         one_study = len(tops) == 1 and tops[0].is_dir() and not (tops[0] / "config.yaml").exists()
         shutil.copytree(tops[0] if one_study else Path(tmp), dest)
     runs = sorted(p.parent.relative_to(dest) for p in dest.rglob("config.yaml"))
-    done.append(f"{len(runs)} runs from {tars[-1]} -> {dest}" + (f": {', '.join(map(str, runs))}" if runs else ""))
+    done.insert(0, f"{len(runs)} runs from {tars[-1]} -> {dest}" + (f": {', '.join(map(str, runs))}" if runs else ""))
     if unfinished:
         done.append(f"left out, not finished (they come home with the lease that finishes them; to keep one as it is, "
                     f"take it from {tars[-1]}): {', '.join(unfinished)}")
@@ -79,6 +90,26 @@ def bring_home(dest: Path, calls: list[Path], gpu_dir: Path | None = Path(".gpu"
         shutil.copy(caches[-1], gpu_dir / "xla-cache.tar.gz")
         done.append(f"{caches[-1]} -> {gpu_dir / 'xla-cache.tar.gz'}")
     return done
+
+
+def drop(run: Path, top: Path) -> None:
+    """Remove `run` and the folders above it, up to `top`, that held nothing else (a study's of this run alone)."""
+    shutil.rmtree(run)
+    for parent in run.parents:
+        if parent == top or any(parent.iterdir()):
+            break
+        parent.rmdir()
+
+
+def on_file(run: Path, root: Path) -> Path | None:
+    """The run directory under `root` (results/) that holds `run` already: the same name and metrics.csv."""
+    if not root.is_dir() or not (run / "metrics.csv").exists():
+        return None
+    metrics = (run / "metrics.csv").read_bytes()
+    for m in sorted(root.rglob(f"{run.name}/metrics.csv")):
+        if m.read_bytes() == metrics:
+            return m.parent
+    return None
 
 
 def report_tables(dest: Path, titles=("Rates per phase", "Health")) -> str:
