@@ -85,8 +85,9 @@ fi
 # The lease's clock: a machine's first call (`place`, `send` or a command) notes the time in .lease-start, which stays
 # on the warm machine (git-ignored, like runs/) and goes back with it. DEVICE_JOB_UNTIL_S=<s> interrupts the command
 # that many seconds after that first call (or at DEVICE_JOB_LIMIT_S, where that comes first): a batch's last call then
-# spends what the calls before it left, however long they ran. A lease also counts its start and each call's
-# transfers (~150-250 s a batch, docs/results.md): take them off the budget when choosing <s>. Every call logs the clock.
+# spends what the calls before it left, however long they ran. The lease counts more than the clock: <s> = the budget
+# left before the batch less ~160 s (session 67: the first call came 85 s into the lease, and a call ended on the clock
+# replied 37 s later, its run saved and packed; then a `send` or two). Every call logs the clock.
 [ -f .lease-start ] || date +%s > .lease-start
 need_out() { [ -n "$OUT" ] || { echo "\$OUT is not set: run this through the device tool" >&2; exit 2; }; }
 if [ "$1" = place ]; then
