@@ -38,6 +38,13 @@ def stand_in_machine(gpu: Path) -> Path:
     return gpu
 
 
+def stand_in_env(tmp_path: Path, **extra) -> dict:
+    """The environment of a device_job.sh call on a stand-in machine: this Python on PATH, the wheels installed
+    under tmp_path."""
+    import sys
+    return {"PATH": f"{Path(sys.executable).parent}:/usr/bin:/bin", "DEVICE_JOB_SITE": str(tmp_path / "site"), **extra}
+
+
 def test_continue_refuses_a_fresh_machine_and_runs_nothing(tmp_path):
     marker = tmp_path / "ran"
     r = job("--continue", "fp32", "touch", str(marker), cwd=tmp_path, out=tmp_path)
@@ -70,7 +77,6 @@ def test_the_carried_cache_is_unpacked_on_a_fresh_machine_even_by_a_continuing_c
     """The first training call after `place` calls is a --continue call on a fresh machine (the placed run is put
     back, so it runs): it starts from the carried compilation cache too (session 66's plan found that it did not, and
     would have compiled R-MoMo's train step anew, ~140 s); a --continue call on a warm machine leaves the cache be."""
-    import sys
     xla_cache = load_tool("xla_cache")
     earlier = tmp_path / "earlier"
     earlier.mkdir()
@@ -80,8 +86,7 @@ def test_the_carried_cache_is_unpacked_on_a_fresh_machine_even_by_a_continuing_c
     xla_cache.pack(earlier, gpu / ".gpu" / "xla-cache.tar.gz")
     (gpu / "runs" / "studies" / "paper" / "ft-rmomo-main-s3").mkdir(parents=True)     # as `place` would put back
     cache = tmp_path / "xla"
-    env = {"PATH": f"{Path(sys.executable).parent}:/usr/bin:/bin", "DEVICE_JOB_SITE": str(tmp_path / "site"),
-           "MJX_MORPH_XLA_CACHE": str(cache)}
+    env = stand_in_env(tmp_path, MJX_MORPH_XLA_CACHE=str(cache))
     r = job("--continue", "rm3d", "true", cwd=gpu, out=tmp_path, **env)
     assert r.returncode == 0, r.stdout + r.stderr
     assert (cache / "jit_train_step-abc").read_bytes() == b"program"
@@ -93,10 +98,9 @@ def test_the_carried_cache_is_unpacked_on_a_fresh_machine_even_by_a_continuing_c
 def test_the_lease_clock_ends_a_command_at_its_time_after_the_machines_first_call(tmp_path):
     """DEVICE_JOB_UNTIL_S counts from the machine's first call (noted once, in .lease-start), so that a batch's last
     call can spend what the calls before it left; a time already past runs nothing, and the artefacts still pack."""
-    import sys
     import time
     gpu = stand_in_machine(tmp_path / "gpu")
-    env = {"PATH": f"{Path(sys.executable).parent}:/usr/bin:/bin", "DEVICE_JOB_SITE": str(tmp_path / "site")}
+    env = stand_in_env(tmp_path)
     r = job("place", "nowhere", cwd=gpu, out=tmp_path, **env)             # a first call, even a failing one
     first = int((gpu / ".lease-start").read_text())
     assert abs(first - time.time()) < 5
@@ -393,7 +397,6 @@ def test_the_move_call_packs_on_the_machine_and_sends_back_what_fits(tmp_path):
     call's 8 files, the rest wait for `send` calls, and the parts of all calls put both runs back here byte for
     byte."""
     import os
-    import sys
     move_runs = load_tool("move_runs")
     gpu = stand_in_machine(tmp_path / "gpu")
     run = gpu / "runs" / "studies" / "paper" / "ft-rmemo-main-s9"
@@ -410,9 +413,8 @@ def test_the_move_call_packs_on_the_machine_and_sends_back_what_fits(tmp_path):
     outs = [tmp_path / f"out{i}" for i in range(1, 4)]
     for o in outs:
         o.mkdir()
-    env = {"PATH": f"{Path(sys.executable).parent}:/usr/bin:/bin", "DEVICE_JOB_SITE": str(tmp_path / "site"),
-           "HOME": str(tmp_path),
-           "DEVICE_JOB_MOVE_OUT": "runs/studies/paper/ft-rmemo-main-s9 runs/studies/paper/ft-metamorph-main-s9"}
+    env = stand_in_env(tmp_path, HOME=str(tmp_path),
+                       DEVICE_JOB_MOVE_OUT="runs/studies/paper/ft-rmemo-main-s9 runs/studies/paper/ft-metamorph-main-s9")
     r = job("zs", "echo", "trained", cwd=gpu, out=outs[0], **env)
     assert r.returncode == 0 and "trained" in (outs[0] / "zs.log").read_text(), r.stdout + r.stderr
     back1 = [p for p in outs[0].iterdir() if p.name.startswith("move.")]

@@ -46,23 +46,23 @@ def bring_home(dest: Path, calls: list[Path], gpu_dir: Path | None = Path(".gpu"
     with tempfile.TemporaryDirectory() as tmp:
         with tarfile.open(tars[-1]) as tf:
             tf.extractall(tmp, filter="data")
+        # runs short of their stop are left out; a run already on file (its name and metrics.csv the same, elsewhere
+        # in the results root: a lease that only evaluated it, or packed it beside another run) is not brought twice,
+        # and the evaluations its copy on file lacks join it there
         for run in sorted(p.parent for p in Path(tmp).rglob("config.yaml")):
             short = read_run(run).short_of_stop()
+            kept = None if short else on_file(run, dest.parent)
             if short:
                 unfinished.append(f"{run.relative_to(tmp)} (iteration {short[0]} of {short[1]})")
-                drop(run, Path(tmp))
-        # a run already on file (its name and metrics.csv the same, elsewhere in the results root: a lease that only
-        # evaluated it, or packed it beside another run) is not brought twice; evaluations it lacks join it there
-        for run in sorted(p.parent for p in Path(tmp).rglob("config.yaml")):
-            kept = on_file(run, dest.parent)
-            if kept is None:
+            elif kept is not None:
+                added = [e for e in sorted((run / "eval").glob("*.json")) if not (kept / "eval" / e.name).exists()]
+                for e in added:
+                    (kept / "eval").mkdir(exist_ok=True)
+                    shutil.copy(e, kept / "eval" / e.name)
+                done.append(f"{run.relative_to(tmp)}: already on file at {kept}, not brought again"
+                            + (f"; its new evaluations added there: {', '.join(e.name for e in added)}" if added else ""))
+            else:
                 continue
-            added = [e for e in sorted((run / "eval").glob("*.json")) if not (kept / "eval" / e.name).exists()]
-            for e in added:
-                (kept / "eval").mkdir(exist_ok=True)
-                shutil.copy(e, kept / "eval" / e.name)
-            done.append(f"{run.relative_to(tmp)}: already on file at {kept}, not brought again"
-                        + (f"; its new evaluations added there: {', '.join(e.name for e in added)}" if added else ""))
             drop(run, Path(tmp))
         # one study left (the others' runs all unfinished, session 67): its runs directly in the results folder
         tops = sorted(Path(tmp).iterdir())
