@@ -551,7 +551,7 @@ def test_home_brings_the_last_calls_runs_each_calls_log_and_the_newest_cache(tmp
     assert sorted(p.name for p in (tmp_path / "results" / "again").iterdir()) == ["call1.log", "ft-modumorph-s4"]
     assert (kept / "eval" / "variants.json").read_text() == "new" and (kept / "eval" / "test.json").read_text() == \
         "on file"
-    assert done[0].endswith(": ft-modumorph-s4")
+    assert done[0].startswith("1 run from ") and done[0].endswith(": ft-modumorph-s4")
     assert done[1] == (f"ab/ft-rmomo-s3: already on file at {kept}, not brought again; its new evaluations added "
                        "there: variants.json")
     r = job("home", str(tmp_path / "results" / "x"), cwd=tmp_path)

@@ -185,12 +185,18 @@ def test_run_moved_in_parts_resumes_like_uninterrupted(full_run, exp, tmp_path):
         collect.collect(collect.CollectConfig(runs=[str(study)], out=str(tmp_path / "folder"), part_mb=1.0))
 
 
-def test_stop_at_ends_the_run_for_good(exp, tmp_path):
-    """stop_at=N ends the run at iteration N of its schedule; rerunning it trains no further (unlike stop_after)."""
+def test_stop_at_ends_the_run_for_good(full_run, exp, tmp_path):
+    """stop_at=N ends the run at iteration N of its schedule; rerunning it trains no further (unlike stop_after).
+    stop_at is free on resume: rerun with stop_at=null, the run trains on to its schedule's end and ends where the
+    uninterrupted run does (a 20 M-step look, total_steps=1e8 stop_at=245, trained on to 100 M: docs/results.md)."""
     d = tmp_path / "stop_at"
     for _ in range(2):
         train(config(f"run_dir={d}", "stop_at=1"), exp)
         assert RunDir(d).latest_step() == 1 and [int(r["iteration"]) for r in RunDir(d).read_metrics()] == [1]
+    train(config(f"run_dir={d}", "stop_at=null"), exp)
+    assert [int(r["iteration"]) for r in RunDir(d).read_metrics()] == [1, 2, 3]
+    for x, y in zip(jax.tree.leaves(params_of(full_run[0], exp.trainer)), jax.tree.leaves(params_of(d, exp.trainer))):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
 
 
 class Recorder(Callback):

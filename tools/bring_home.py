@@ -69,7 +69,8 @@ def bring_home(dest: Path, calls: list[Path], gpu_dir: Path | None = Path(".gpu"
         one_study = len(tops) == 1 and tops[0].is_dir() and not (tops[0] / "config.yaml").exists()
         shutil.copytree(tops[0] if one_study else Path(tmp), dest)
     runs = sorted(p.parent.relative_to(dest) for p in dest.rglob("config.yaml"))
-    done.insert(0, f"{len(runs)} runs from {tars[-1]} -> {dest}" + (f": {', '.join(map(str, runs))}" if runs else ""))
+    counted = f"{len(runs)} run" + ("" if len(runs) == 1 else "s")
+    done.insert(0, f"{counted} from {tars[-1]} -> {dest}" + (f": {', '.join(map(str, runs))}" if runs else ""))
     if unfinished:
         done.append(f"left out, not finished (they come home with the lease that finishes them; to keep one as it is, "
                     f"take it from {tars[-1]}): {', '.join(unfinished)}")
