@@ -87,9 +87,10 @@ fi
 # that many seconds after that first call (or at DEVICE_JOB_LIMIT_S, where that comes first): a batch's last call then
 # spends what the calls before it left, however long they ran. The lease counts more than the clock: <s> = the budget
 # left in the first call's reply less ~110 s (a call ended on the clock replied 37-38 s later, its run saved and
-# packed, in sessions 67-68; then a `send` or two). Where the machine came at the first try, the budget left before
-# the batch less ~160 s is the same (session 67: the first call came 85 s into the lease); failed starts before it
-# (session 68: 182 s) are not on the clock, so count from the first call's reply. Every call logs the clock.
+# packed, in sessions 67-69; then a `send` or two, none where the parts fit the call: session 69). Where the machine
+# came at the first try, the budget left before the batch less ~160 s is the same (session 67: the first call came
+# 85 s into the lease); failed starts before it (session 68: 182 s) are not on the clock, so count from the first
+# call's reply. Every call logs the clock.
 [ -f .lease-start ] || date +%s > .lease-start
 need_out() { [ -n "$OUT" ] || { echo "\$OUT is not set: run this through the device tool" >&2; exit 2; }; }
 if [ "$1" = place ]; then
