@@ -198,27 +198,48 @@ def test_reward_and_terminations():
     np.testing.assert_allclose(g, 1 + np.tan(np.radians(10)) * np.floor(-718.9) / 10, atol=1e-3)
 
 
-def test_put_models_spread_over_processes_gives_what_one_process_does(monkeypatch):
-    """MJX's put_model of many robots runs in several processes (`model.put_models`): the same leaves, in float64
-    too under jax.enable_x64 (as sim.fidelity builds its reference models), and no fallback warning."""
+def _same_leaves(ref, many) -> None:
+    for a, b in zip(ref, many, strict=True):
+        la, ta = jax.tree_util.tree_flatten(a)
+        lb, tb = jax.tree_util.tree_flatten(b)
+        assert ta == tb and len(la) > 50
+        for x, y in zip(la, lb):
+            assert np.asarray(x).dtype == np.asarray(y).dtype and np.array_equal(x, y)
+
+
+def test_env_build_spread_over_processes_gives_what_one_process_does(monkeypatch):
+    """The CPU work of a large set's env build runs in several processes: MJX's put_model (`model.put_models`),
+    compiling each padded robot with it (`model.compile_and_put`) and the shared tree's merge orders
+    (`supertree.build_shared_tree`). Each gives what one process does, bit for bit: the same tree, the same MJX
+    leaves (in float64 too under jax.enable_x64, as sim.fidelity builds its reference models) with the compiled
+    model's signature, the same compiled models; and no fallback warning."""
     import warnings
     rs = _robots(3)
-    tree = supertree.build_shared_tree(rs)
+    tree = supertree.build_shared_tree(rs)                          # 3 < PARALLEL_FROM_ROBOTS: this process
     mjm = model.compile_padded(rs, tree, fidelity.FLOOR_WORLD, SolverOptions())
     one = model.put_models(mjm)                                     # 3 < PUT_PARALLEL_FROM: this process
     monkeypatch.setattr(model, "PUT_PARALLEL_FROM", 2)
+    monkeypatch.setattr(supertree, "PARALLEL_FROM_ROBOTS", 2)
     monkeypatch.setattr(model.processes, "os", _TwoCores())
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)           # a broken pool would warn
+        monkeypatch.setattr(supertree, "PARALLEL_FROM_ROBOTS", 10 ** 6)
+        serial = supertree.build_shared_tree(rs, tries=4)
+        monkeypatch.setattr(supertree, "PARALLEL_FROM_ROBOTS", 2)
+        assert supertree.build_shared_tree(rs, tries=4) == serial
+        mjm2, both = model.compile_and_put(rs, tree, fidelity.FLOOR_WORLD, SolverOptions())
+    _same_leaves(one, both)
+    assert both[0].signature == mjm[0].signature != 0
+    for a, b in zip(mjm, mjm2, strict=True):                        # the compiled models, pickled back
+        for f in ("body_mass", "geom_size", "jnt_range", "dof_armature", "actuator_gear", "geom_margin"):
+            assert np.array_equal(getattr(a, f), getattr(b, f)), f
+        assert a.opt.tolerance == b.opt.tolerance
     for x64 in (False, True):
         with jax.enable_x64(x64), warnings.catch_warnings():
-            warnings.simplefilter("error", RuntimeWarning)       # a broken pool would warn
+            warnings.simplefilter("error", RuntimeWarning)
             many = model.put_models(mjm)
             ref = one if not x64 else [model._put_model((mm, True, mm.signature)) for mm in mjm]
-        for a, b in zip(ref, many):
-            la, ta = jax.tree_util.tree_flatten(a)
-            lb, tb = jax.tree_util.tree_flatten(b)
-            assert ta == tb and len(la) > 50
-            for x, y in zip(la, lb):
-                assert np.asarray(x).dtype == np.asarray(y).dtype and np.array_equal(x, y)
+        _same_leaves(ref, many)
         assert np.asarray(many[0].body_mass).dtype == (np.float64 if x64 else np.float32)
         assert many[0].signature == mjm[0].signature != 0               # lost in pickling, put back
 

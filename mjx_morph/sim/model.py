@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import dataclasses
 import enum
+import functools
 import hashlib
 from importlib import metadata
 from typing import Any, NamedTuple, Sequence
@@ -208,27 +209,54 @@ def compile_padded(robots: Sequence[Morphology], tree: SharedTree, world: WorldS
     solver's improvement, gradient and line-search tolerance relative to trace(M), which the locked joints'
     armature inflates by ~1e5; `tolerance * trace(M alone) / trace(M padded)` (at qpos0) gives the padded robot
     the early-exit and line-search behaviour of the robot alone."""
-    out = []
-    for r, m in enumerate(robots):
-        mm = mujoco.MjModel.from_xml_string(padding.padded_mjcf(m, tree, r, world, options))
-        _fix_static(mm)
-        mm.opt.tolerance = mm.opt.tolerance * _trace_m(compile_model(m)) / _trace_m(mm)
-        out.append(mm)
-    return out
+    return [_compile_one(tree, world, options, r, m) for r, m in enumerate(robots)]
 
 
-#: robots from which `put_models` spreads over processes: below, starting them (their JAX imports) costs more than
-#: it saves
+def _compile_one(tree: SharedTree, world: WorldSpec, options: SolverOptions, r: int, m: Morphology
+                 ) -> mujoco.MjModel:
+    mm = mujoco.MjModel.from_xml_string(padding.padded_mjcf(m, tree, r, world, options))
+    _fix_static(mm)
+    mm.opt.tolerance = mm.opt.tolerance * _trace_m(compile_model(m)) / _trace_m(mm)
+    return mm
+
+
+#: robots from which `put_models` and `compile_and_put` spread over processes: below, starting them (their JAX
+#: imports) costs more than it saves
 PUT_PARALLEL_FROM = 500
 
 
 def put_models(mjm: Sequence[mujoco.MjModel]) -> list[mjx.Model]:
     """`mjx.put_model` of each compiled robot on the CPU, with numpy leaves (`_stack` stacks them). It costs ~20 ms
     a robot (JAX's dispatch per field), so from `PUT_PARALLEL_FROM` robots on it runs in one process per core."""
-    x64 = jax.dtypes.canonicalize_dtype(np.float64) == np.float64       # under jax.enable_x64 (sim.fidelity)
-    jobs = [(mm, x64, int(mm.signature)) for mm in mjm]
+    jobs = [(mm, _x64(), int(mm.signature)) for mm in mjm]
     return processes.process_map(_put_model, jobs, processes.processes_for(len(jobs), PUT_PARALLEL_FROM),
                                  "MJX's put_model")
+
+
+def compile_and_put(robots: Sequence[Morphology], tree: SharedTree, world: WorldSpec, options: SolverOptions
+                    ) -> tuple[list[mujoco.MjModel], list[mjx.Model]]:
+    """`compile_padded`, then `put_models`, in one pass over processes from `PUT_PARALLEL_FROM` robots on (the
+    2400 variants: ~15 s of compiling in this process before; each robot is compiled where it is put). The
+    compiled models come back pickled, which leaves their `signature` 0 (the MJX models keep the real one); nothing
+    reads it after `put_model`."""
+    n = processes.processes_for(len(robots), PUT_PARALLEL_FROM)
+    if n == 1:
+        mjm = compile_padded(robots, tree, world, options)
+        return mjm, put_models(mjm)
+    job = functools.partial(_compile_and_put_one, tree, world, options, _x64())
+    both = processes.process_map(job, list(enumerate(robots)), n, "compiling the padded robots and MJX's put_model")
+    return [mm for mm, _ in both], [mx for _, mx in both]
+
+
+def _compile_and_put_one(tree: SharedTree, world: WorldSpec, options: SolverOptions, x64: bool,
+                         item: tuple[int, Morphology]) -> tuple[mujoco.MjModel, mjx.Model]:
+    mm = _compile_one(tree, world, options, *item)
+    return mm, _put_model((mm, x64, int(mm.signature)))
+
+
+def _x64() -> bool:
+    """Whether models are put in float64 (under jax.enable_x64, as sim.fidelity builds its reference models)."""
+    return jax.dtypes.canonicalize_dtype(np.float64) == np.float64
 
 
 def _put_model(job: tuple[mujoco.MjModel, bool, int]) -> mjx.Model:
@@ -249,12 +277,12 @@ def _stack(models: list[mjx.Model]) -> tuple[mjx.Model, mjx.Model]:
         all_leaves.append(leaves)
     stacked, axes = [], []
     for j in range(len(leaves0)):
-        col = [np.asarray(l[j]) for l in all_leaves]
-        if all(np.array_equal(col[0], c) for c in col[1:]):
+        col = np.stack([np.asarray(l[j]) for l in all_leaves])
+        if (col == col[:1]).all():                        # as np.array_equal of each with the first (NaN != NaN)
             stacked.append(jnp.asarray(col[0]))
             axes.append(None)
         else:
-            stacked.append(jnp.asarray(np.stack(col)))
+            stacked.append(jnp.asarray(col))
             axes.append(0)
     return jax.tree_util.tree_unflatten(treedef, stacked), jax.tree_util.tree_unflatten(treedef, axes)
 
@@ -278,8 +306,7 @@ def build_stacked_model(robots: Sequence[Morphology], world: WorldSpec = WorldSp
     robots = tuple(robots)
     tree = tree or build_shared_tree(robots)
     options, search = _with_self_pairs(robots, tree, options, budget=self_pair_budget)
-    mjm = compile_padded(robots, tree, world, options)
-    mxs = put_models(mjm)
+    mjm, mxs = compile_and_put(robots, tree, world, options)
     rb = np.max(np.stack([np.asarray(mx._impl.geom_rbound_hfield) for mx in mxs]), axis=0)
     mxs = [mx.replace(_impl=mx._impl.replace(geom_rbound_hfield=rb)) for mx in mxs]
     # inert geoms: never active (margin only decides activation in MJX; collision functions ignore it), and never

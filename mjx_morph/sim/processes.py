@@ -1,6 +1,7 @@
-"""CPU work of an env build spread over this host's cores: the self-collision pair search (`selfcontact`) and MJX's
-`put_model` of each padded robot (`model`). Each costs from ~20 ms to seconds a robot in one process, so a set of
-thousands (the 2400 variants) took minutes before it was spread.
+"""CPU work of an env build spread over this host's cores: the self-collision pair search (`selfcontact`), the
+shared tree's merge orders (`supertree`), and compiling each padded robot with MJX's `put_model` (`model`). Each
+costs from ~1 ms to seconds a robot in one process, so a set of thousands (the 2400 variants) took minutes before it
+was spread.
 
 Processes are started with "spawn" (a child forked from a process running JAX's threads could deadlock), which
 re-imports the caller's main module in each child: a script needs the `if __name__ == "__main__":` guard. A pool
