@@ -208,40 +208,37 @@ def _same_leaves(ref, many) -> None:
 
 
 def test_env_build_spread_over_processes_gives_what_one_process_does(monkeypatch):
-    """The CPU work of a large set's env build runs in several processes: MJX's put_model (`model.put_models`),
-    compiling each padded robot with it (`model.compile_and_put`) and the shared tree's merge orders
-    (`supertree.build_shared_tree`). Each gives what one process does, bit for bit: the same tree, the same MJX
-    leaves (in float64 too under jax.enable_x64, as sim.fidelity builds its reference models) with the compiled
-    model's signature, the same compiled models; and no fallback warning."""
+    """The CPU work of a large set's env build runs in several processes: compiling each padded robot and MJX's
+    put_model of it (`model.compile_and_put`) and the shared tree's merge orders (`supertree.build_shared_tree`).
+    Each gives what one process does, bit for bit: the same tree, the same MJX leaves (in float64 too under
+    jax.enable_x64, as sim.fidelity builds its reference models) with the compiled model's signature, the same
+    compiled models; and no fallback warning."""
     import warnings
     rs = _robots(3)
-    tree = supertree.build_shared_tree(rs)                          # 3 < PARALLEL_FROM_ROBOTS: this process
-    mjm = model.compile_padded(rs, tree, fidelity.FLOOR_WORLD, SolverOptions())
-    one = model.put_models(mjm)                                     # 3 < PUT_PARALLEL_FROM: this process
+    serial_tree = supertree.build_shared_tree(rs, tries=4)          # 3 < PARALLEL_FROM_ROBOTS: this process
+    tree = supertree.build_shared_tree(rs)
+    one = {}
+    for x64 in (False, True):
+        with jax.enable_x64(x64):
+            one[x64] = model.compile_and_put(rs, tree, fidelity.FLOOR_WORLD, SolverOptions())   # 3 < PUT_PARALLEL_FROM
     monkeypatch.setattr(model, "PUT_PARALLEL_FROM", 2)
     monkeypatch.setattr(supertree, "PARALLEL_FROM_ROBOTS", 2)
     monkeypatch.setattr(model.processes, "os", _TwoCores())
     with warnings.catch_warnings():
         warnings.simplefilter("error", RuntimeWarning)           # a broken pool would warn
-        monkeypatch.setattr(supertree, "PARALLEL_FROM_ROBOTS", 10 ** 6)
-        serial = supertree.build_shared_tree(rs, tries=4)
-        monkeypatch.setattr(supertree, "PARALLEL_FROM_ROBOTS", 2)
-        assert supertree.build_shared_tree(rs, tries=4) == serial
-        mjm2, both = model.compile_and_put(rs, tree, fidelity.FLOOR_WORLD, SolverOptions())
-    _same_leaves(one, both)
-    assert both[0].signature == mjm[0].signature != 0
-    for a, b in zip(mjm, mjm2, strict=True):                        # the compiled models, pickled back
-        for f in ("body_mass", "geom_size", "jnt_range", "dof_armature", "actuator_gear", "geom_margin"):
-            assert np.array_equal(getattr(a, f), getattr(b, f)), f
-        assert a.opt.tolerance == b.opt.tolerance
+        assert supertree.build_shared_tree(rs, tries=4) == serial_tree
     for x64 in (False, True):
+        mjm, ref = one[x64]
         with jax.enable_x64(x64), warnings.catch_warnings():
             warnings.simplefilter("error", RuntimeWarning)
-            many = model.put_models(mjm)
-            ref = one if not x64 else [model._put_model((mm, True, mm.signature)) for mm in mjm]
+            mjm2, many = model.compile_and_put(rs, tree, fidelity.FLOOR_WORLD, SolverOptions())
         _same_leaves(ref, many)
         assert np.asarray(many[0].body_mass).dtype == (np.float64 if x64 else np.float32)
-        assert many[0].signature == mjm[0].signature != 0               # lost in pickling, put back
+        assert many[0].signature == mjm[0].signature != 0               # the compiled model's, kept by put_model
+        for a, b in zip(mjm, mjm2, strict=True):                        # the compiled models, pickled back
+            for f in ("body_mass", "geom_size", "jnt_range", "dof_armature", "actuator_gear", "geom_margin"):
+                assert np.array_equal(getattr(a, f), getattr(b, f)), f
+            assert a.opt.tolerance == b.opt.tolerance
 
 
 class _TwoCores:

@@ -220,51 +220,32 @@ def _compile_one(tree: SharedTree, world: WorldSpec, options: SolverOptions, r: 
     return mm
 
 
-#: robots from which `put_models` and `compile_and_put` spread over processes: below, starting them (their JAX
-#: imports) costs more than it saves
+#: robots from which `compile_and_put` spreads over processes: below, starting them (their JAX imports) costs more
+#: than it saves
 PUT_PARALLEL_FROM = 500
-
-
-def put_models(mjm: Sequence[mujoco.MjModel]) -> list[mjx.Model]:
-    """`mjx.put_model` of each compiled robot on the CPU, with numpy leaves (`_stack` stacks them). It costs ~20 ms
-    a robot (JAX's dispatch per field), so from `PUT_PARALLEL_FROM` robots on it runs in one process per core."""
-    jobs = [(mm, _x64(), int(mm.signature)) for mm in mjm]
-    return processes.process_map(_put_model, jobs, processes.processes_for(len(jobs), PUT_PARALLEL_FROM),
-                                 "MJX's put_model")
 
 
 def compile_and_put(robots: Sequence[Morphology], tree: SharedTree, world: WorldSpec, options: SolverOptions
                     ) -> tuple[list[mujoco.MjModel], list[mjx.Model]]:
-    """`compile_padded`, then `put_models`, in one pass over processes from `PUT_PARALLEL_FROM` robots on (the
-    2400 variants: ~15 s of compiling in this process before; each robot is compiled where it is put). The
-    compiled models come back pickled, which leaves their `signature` 0 (the MJX models keep the real one); nothing
-    reads it after `put_model`."""
-    n = processes.processes_for(len(robots), PUT_PARALLEL_FROM)
-    if n == 1:
-        mjm = compile_padded(robots, tree, world, options)
-        return mjm, put_models(mjm)
-    job = functools.partial(_compile_and_put_one, tree, world, options, _x64())
-    both = processes.process_map(job, list(enumerate(robots)), n, "compiling the padded robots and MJX's put_model")
+    """Each padded robot compiled (`compile_padded`) and put into MJX on the CPU with numpy leaves (`_stack` stacks
+    them; in float64 under jax.enable_x64, as sim.fidelity builds its reference models). `put_model` costs ~20 ms a
+    robot (JAX's dispatch per field) and compiling ~6 ms, so from `PUT_PARALLEL_FROM` robots on both run in one
+    process per core, each robot compiled where it is put (the 2400 variants: ~15 s of compiling in this process
+    before). The compiled models come back from the processes pickled, which leaves their `signature` 0 (the MJX
+    models keep the real one); nothing reads it after `put_model`."""
+    x64 = jax.dtypes.canonicalize_dtype(np.float64) == np.float64
+    job = functools.partial(_compile_and_put_one, tree, world, options, x64)
+    both = processes.process_map(job, list(enumerate(robots)), processes.processes_for(len(robots), PUT_PARALLEL_FROM),
+                                 "compiling the padded robots and MJX's put_model")
     return [mm for mm, _ in both], [mx for _, mx in both]
 
 
 def _compile_and_put_one(tree: SharedTree, world: WorldSpec, options: SolverOptions, x64: bool,
                          item: tuple[int, Morphology]) -> tuple[mujoco.MjModel, mjx.Model]:
     mm = _compile_one(tree, world, options, *item)
-    return mm, _put_model((mm, x64, int(mm.signature)))
-
-
-def _x64() -> bool:
-    """Whether models are put in float64 (under jax.enable_x64, as sim.fidelity builds its reference models)."""
-    return jax.dtypes.canonicalize_dtype(np.float64) == np.float64
-
-
-def _put_model(job: tuple[mujoco.MjModel, bool, int]) -> mjx.Model:
-    mm, x64, signature = job
     with jax.enable_x64(x64):
         mx = mjx.put_model(mm, device=jax.local_devices(backend="cpu")[0], impl="jax")
-    # a pickled MjModel (one sent to a process) comes back with signature 0: the compiled model's, as MJX keeps it
-    return jax.tree_util.tree_map(np.asarray, mx.replace(signature=signature))
+    return mm, jax.tree_util.tree_map(np.asarray, mx)
 
 
 def _stack(models: list[mjx.Model]) -> tuple[mjx.Model, mjx.Model]:
