@@ -560,6 +560,18 @@ def test_the_claims_manifest_holds_every_paper_run_once_and_each_seed_once():
     assert _check_manifest("claims.yaml", "paper_s*").excluded
 
 
+def converged_violations(runs: list[Run], physics: str, task: str) -> dict[str, list[str]]:
+    """What keeps each run out of a converged-physics comparison: another physics digest, task, rollout geometry than
+    1,024 envs x 80 steps, or precision than fp32; {run: the rules it breaks} for the runs that break any."""
+    def off(r):
+        ppo = r.cfg.get("ppo") or {}
+        return [k for k, bad in [("physics", [d[:8] for d in r.physics] != [physics]),
+                                 ("task", r.task != task),
+                                 ("geometry", (ppo.get("num_envs"), ppo.get("rollout_len")) != (1024, 80)),
+                                 ("precision", r.cfg.get("precision") != "fp32")] if bad]
+    return {str(r.path): off(r) for r in runs if off(r)}
+
+
 def test_the_converged_physics_manifest_pools_one_physics_geometry_and_precision():
     """results/claims_converged.yaml (R-MoMo against ModuMorph at 20 M steps on today's physics) pools only runs of
     physics a3c4a671 at 1,024 envs x 80 steps in fp32, each seed once, at least three seeds of each model; the physics
@@ -568,18 +580,34 @@ def test_the_converged_physics_manifest_pools_one_physics_geometry_and_precision
     runs = [read_run(p) for p in m.runs + m.pending]
     seeds = [(r.task, r.arch, r.seed) for r in runs]
     assert len(seeds) == len(set(seeds)), sorted(s for s in seeds if seeds.count(s) > 1)
-
-    def off(r):
-        ppo = r.cfg.get("ppo") or {}
-        return [k for k, bad in [("physics", [d[:8] for d in r.physics] != ["a3c4a671"]),
-                                 ("geometry", (ppo.get("num_envs"), ppo.get("rollout_len")) != (1024, 80)),
-                                 ("precision", r.cfg.get("precision") != "fp32")] if bad]
-    assert not {str(r.path): off(r) for r in runs if off(r)}
+    assert not converged_violations(runs, "a3c4a671", "ft")
     counts = {a: sum(r.arch == a for r in runs) for a in ("rmomo", "modumorph")}
     assert min(counts.values()) >= 3, counts
     Looks.parse(m.looks)
     capped = read_run(read_manifest(ROOT / "results" / "claims.yaml").runs[0])
-    assert "physics" in off(capped)
+    assert "physics" in converged_violations([capped], "a3c4a671", "ft")[str(capped.path)]
+
+
+def test_the_converged_incline_manifest_follows_its_design():
+    """results/claims_converged_incline.yaml (incline on the converged physics, design fixed in session 70) holds
+    every incline run of results/ab_geometry_s*/ once, each of physics 8e90ddac at 1,024 envs x 80 steps in fp32,
+    R-MoMo or ModuMorph, a seed of 0-2, each seed once; nothing is pooled before both models have three seeds (the
+    design's one look), and then nothing stays pending. The task rule is seen to fail on an ft run of that study."""
+    m = read_manifest(ROOT / "results" / "claims_converged_incline.yaml")
+    listed = {p.resolve() for p in m.runs + m.pending + list(m.excluded)}
+    on_file = {p.resolve() for p in (ROOT / "results").glob("ab_geometry_s*/incline-*") if (p / "config.yaml").exists()}
+    assert on_file and on_file <= listed, sorted(str(p) for p in on_file - listed)
+    runs = [read_run(p) for p in m.runs + m.pending]
+    seeds = [(r.arch, r.seed) for r in runs]
+    assert len(seeds) == len(set(seeds)) and {a for a, _ in seeds} <= {"rmomo", "modumorph"}, seeds
+    assert all(s in (0, 1, 2) for _, s in seeds), seeds
+    assert not converged_violations(runs, "8e90ddac", "incline")
+    Looks.parse(m.looks)
+    assert m.looks == {"incline/rmomo": 1}
+    pooled = [(r.arch, r.seed) for r in map(read_run, m.runs)]
+    assert not pooled or (len(pooled) == 6 and not m.pending), (pooled, m.pending)
+    ft = read_run(read_manifest(ROOT / "results" / "claims_converged.yaml").runs[0])
+    assert "task" in converged_violations([ft], "8e90ddac", "incline")[str(ft.path)]
 
 
 def design_100m_violations(runs: list[Run]) -> list[str]:
