@@ -11,6 +11,7 @@ import jax.numpy as jnp
 
 from mjx_morph.layout import Obs, Robots
 from mjx_morph.sim import sampling
+from mjx_morph.sim.env import EpisodeStats   # the real env's statistics, so the trainer reads the same fields
 from mjx_morph.sim.model import model_digest
 
 
@@ -18,16 +19,6 @@ class Episode(NamedTuple):
     robot: jax.Array
     t: jax.Array
     ret: jax.Array
-
-
-class EpisodeStats(NamedTuple):
-    ret: jax.Array
-    length: jax.Array
-    robot: jax.Array
-    fell: jax.Array
-    out_of_bounds: jax.Array
-    timeout: jax.Array
-    unstable: jax.Array
 
 
 class State(NamedTuple):
