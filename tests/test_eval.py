@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import json
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -114,6 +115,8 @@ def test_evaluation_reports_progress_and_checks_its_input_first(evaluated_runs, 
     # zero-state sweep), then each chunk, then the result
     assert lines[0].startswith("[mjx_morph] train: building the env of 2 robots")
     assert lines[1].startswith("[mjx_morph] train: env built in ") and "self-collision pairs" in lines[1]
+    assert re.search(r"\(tree [\d.]+ s, pairs [\d.]+ s, compile and put \(1 process\) [\d.]+ s, margins [\d.]+ s, "
+                     r"stack [\d.]+ s, constants [\d.]+ s\)", lines[1]), lines[1]
     assert lines[2] == (f"[mjx_morph] train: 8 episodes x {STEPS} steps = {8 * STEPS} env steps in chunks of 4 "
                         "episodes; the first chunk includes compilation")
     assert "compilation included" in lines[3] and "compilation included" not in lines[4] and "left" in lines[4]

@@ -236,9 +236,11 @@ def _sweeper_for(cfg: RunConfig, model, es: EvalSet, env_over: dict, trace_steps
         t0 = time.perf_counter()
         log(f"[mjx_morph] {es.tag}: building the env of {len(es.robots)} robots ({es.name})")
         env = make_env_for(cfg, es.robots, **env_over)
-        pairs = getattr(getattr(env, "sm", None), "self_contact", None)
+        sm = getattr(env, "sm", None)
+        pairs = getattr(sm, "self_contact", None)
+        phases = sm.build_line() if getattr(sm, "build_seconds", None) else ""
         log(f"[mjx_morph] {es.tag}: env built in {time.perf_counter() - t0:.0f} s"
-            + (f"; {pairs.line()}" if pairs is not None else ""))
+            + (f" ({phases})" if phases else "") + (f"; {pairs.line()}" if pairs is not None else ""))
         sweeper = Sweeper(env, model, trace_steps, compiler_options=FAST_COMPILE if cfg.fast_compile else None)
     elif sweeper.prepared:
         log(f"[mjx_morph] {es.tag}: env and sweep prepared while {sweeper.prepared}")
