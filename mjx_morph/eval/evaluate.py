@@ -238,7 +238,7 @@ def _sweeper_for(cfg: RunConfig, model, es: EvalSet, env_over: dict, trace_steps
         env = make_env_for(cfg, es.robots, **env_over)
         sm = getattr(env, "sm", None)
         pairs = getattr(sm, "self_contact", None)
-        phases = sm.build_line() if getattr(sm, "build_seconds", None) else ""
+        phases = sm.build_line() if sm is not None else ""
         log(f"[mjx_morph] {es.tag}: env built in {time.perf_counter() - t0:.0f} s"
             + (f" ({phases})" if phases else "") + (f"; {pairs.line()}" if pairs is not None else ""))
         sweeper = Sweeper(env, model, trace_steps, compiler_options=FAST_COMPILE if cfg.fast_compile else None)

@@ -1,5 +1,5 @@
 """CPU work of an env build spread over this host's cores: the self-collision pair search (`selfcontact`), the
-shared tree's merge orders (`supertree`), and compiling each padded robot with MJX's `put_model` (`model`). Each
+shared tree's merge orders (`supertree`), and compiling each padded robot and MJX's `put_model` of it (`model`). Each
 costs from ~1 ms to seconds a robot in one process, so a set of thousands (the 2400 variants) took minutes before it
 was spread.
 
