@@ -232,6 +232,91 @@ def test_xla_cache_packs_training_programs_before_the_others(tmp_path):
             ["jit__rollout1", "jit__update0", "jit__sweep2"]
 
 
+def test_the_overflow_is_placed_first_and_the_first_training_call_still_unpacks_gpus_cache(tmp_path):
+    """`place .xla` (a lease's first call) unpacks the cache's overflow on the fresh machine; the first training call
+    after it, a --continue call, still unpacks .gpu's archive although the cache folder exists already, and both
+    archives' programs count as carried (pack ranks this lease's own before them)."""
+    xla_cache = load_tool("xla_cache")
+    gpu = stand_in_machine(tmp_path / "gpu")
+    for folder, name in ((".xla", "jit__rollout-over-cache"), (".gpu", "jit__update-main-cache")):
+        src = tmp_path / f"src{folder}"
+        src.mkdir()
+        (src / name).write_bytes(name.encode())
+        (gpu / folder).mkdir()
+        xla_cache.pack(src, gpu / folder / "xla-cache.tar.gz")
+    cache = tmp_path / "xla"
+    env = stand_in_env(tmp_path, MJX_MORPH_XLA_CACHE=str(cache))
+    r = job("place", ".xla", cwd=gpu, out=tmp_path, **env)
+    assert r.returncode == 0 and sorted(p.name for p in cache.iterdir()) == ["jit__rollout-over-cache"], r.stderr
+    (gpu / "runs" / "studies" / "ab" / "incline-rmomo-s1").mkdir(parents=True)     # as `place .mv1` would put back
+    r = job("--continue", "ri1d", "true", cwd=gpu, out=tmp_path, **env)
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert sorted(p.name for p in cache.iterdir()) == ["jit__rollout-over-cache", "jit__update-main-cache"]
+    assert sorted(xla_cache.carried_list(cache).read_text().split()) == ["jit__rollout-over-cache",
+                                                                         "jit__update-main-cache"]
+
+
+def test_fit_spills_what_gives_way_into_the_overflow_and_home_keeps_the_replaced_archive(tmp_path):
+    """`fit` with an overflow: the programs that do not fit the carry beside the wheels go to .xla/, ahead of the
+    overflow's own, within the room of a call that carries the checkout and .xla alone; `merge` (home, before a new
+    cache replaces .gpu's) puts the replaced archive's programs at the overflow's front, each program once."""
+    import os
+    import tarfile
+    xla_cache = load_tool("xla_cache")
+
+    def archive(path: Path, names: list[str], mib: float = 3.0) -> Path:
+        src = tmp_path / f"src{path.parent.name}"          # outside the checkout
+        src.mkdir(parents=True)
+        for age, name in enumerate(names):
+            (src / name).write_bytes(os.urandom(int(mib * 2 ** 20)))      # incompressible
+            os.utime(src / name, (1_000_000 + age, 1_000_000 + age))
+        path.parent.mkdir(parents=True, exist_ok=True)
+        xla_cache.pack(src, path, max_mb=100)
+        return path
+
+    def names(path: Path) -> list[str]:
+        with tarfile.open(path) as tar:
+            return tar.getnames()
+
+    repo = tmp_path / "repo"
+    main = archive(repo / ".gpu" / "xla-cache.tar.gz", ["jit__update-a-cache", "jit__rollout-b-cache",
+                                                         "jit__init_state-c-cache"])
+    over = archive(repo / ".xla" / "xla-cache.tar.gz", ["jit__update-old-cache", "jit__rollout-b-cache"])
+    subprocess.run(["git", "init", "-q"], cwd=repo, check=True)
+    (repo / ".gitignore").write_text(".gpu/\n.xla/\n.whl/\n")
+    (repo / "results.bin").write_bytes(os.urandom(50 * 2 ** 20))      # the checkout: 64 - 1 - 50 MiB of room
+    (repo / ".whl").mkdir()
+    (repo / ".whl" / "w.whl").write_bytes(os.urandom(5 * 2 ** 20))    # beside the wheels: 64 - 1 - 55 MiB
+    r = job("fit", cwd=repo)
+    assert r.returncode == 0 and "2 of 3 compiled programs kept" in r.stdout, r.stdout + r.stderr
+    assert "xla-cache.tar.gz: 2 compiled programs within" in r.stdout and "place .xla" in r.stdout
+    assert names(main) == ["jit__update-a-cache", "jit__rollout-b-cache"]
+    assert names(over) == ["jit__init_state-c-cache", "jit__update-old-cache"]      # b is in the main archive
+    with tarfile.open(over) as tar:
+        assert tar.getmember("jit__update-old-cache").mtime == 1_000_000      # times kept for unpack's ranks
+    assert xla_cache.merge(main, over) == 4
+    assert names(over) == ["jit__update-a-cache", "jit__rollout-b-cache", "jit__init_state-c-cache",
+                           "jit__update-old-cache"]
+    assert xla_cache.merge(tmp_path / "none.tar.gz", over) == 0 and len(names(over)) == 4
+    call = tmp_path / "files1"                       # a lease's call with a finished run and a new cache: home
+    run = tmp_path / "machine" / "ab" / "ft-rmomo-s0"
+    run.mkdir(parents=True)
+    (run / "config.yaml").write_text("arch: rmomo\ntotal_steps: 100000000\nstop_at: 2\n")
+    (run / "metrics.csv").write_text("iteration\n1\n2\n")
+    call.mkdir()
+    (call / "zs.log").write_text("call 1\n")
+    with tarfile.open(call / "zs-runs.tar.gz", "w:gz") as tf:
+        tf.add(tmp_path / "machine" / "ab", arcname="ab")
+    archive(call / "xla-cache.tar.gz", ["jit__update-new-cache"], mib=0.1)
+    done = load_tool("bring_home").bring_home(tmp_path / "results" / "ab_s74", [call], repo / ".gpu")
+    assert any("to the front of" in line for line in done)
+    assert names(main) == ["jit__update-new-cache"]
+    assert names(over) == ["jit__update-a-cache", "jit__rollout-b-cache", "jit__init_state-c-cache",
+                           "jit__update-old-cache"]
+    kept, count, spilled = xla_cache.fit(main, 100.0, over, 0.0)     # no room for an overflow: it goes
+    assert (kept, count, spilled) == (1, 1, 0) and not over.exists()
+
+
 def test_fit_shrinks_the_carried_cache_to_the_room_the_checkout_leaves(tmp_path):
     """`device_job.sh fit` (here, after copying a lease's cache to .gpu/): what travels is at most 64 MiB, the
     checkout grows with the results, and the cache gives way: its first programs (pack's order, the most useful) stay,
@@ -248,7 +333,7 @@ def test_fit_shrinks_the_carried_cache_to_the_room_the_checkout_leaves(tmp_path)
     archive = repo / ".gpu" / "xla-cache.tar.gz"
     xla_cache.pack(cache, archive)
     subprocess.run(["git", "init", "-q"], cwd=repo, check=True)
-    (repo / ".gitignore").write_text(".gpu/\n")
+    (repo / ".gitignore").write_text(".gpu/\n.xla/\n")
     r = job("fit", cwd=repo)                       # 9 MiB of cache, nothing else: it fits
     assert r.returncode == 0 and "3 of 3 compiled programs kept" in r.stdout, r.stdout + r.stderr
     (repo / "results.bin").write_bytes(os.urandom(55 * 2 ** 20))   # the checkout grows: 64 - 55 - 1 < 9 MiB

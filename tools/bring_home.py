@@ -11,7 +11,8 @@
   another): not brought twice, their evaluations that the copy on file lacks added to it;
 - each call's log (`<name>.log`) as `call<k>.log` (k: the call's place in the order given);
 - the newest compilation cache (`xla-cache.tar.gz`) into .gpu/, where the next lease's first call starts from it
-  (device_job.sh then fits it to the room the checkout leaves);
+  (device_job.sh then fits it to the room the checkout leaves); the programs of the archive it replaces go to the
+  front of the overflow, .xla/xla-cache.tar.gz (tools/xla_cache.py), so that none is lost before `fit` chooses;
 - then the runs' "Health" and "Rates per phase" tables, from a report built in a temporary folder.
 
 The results folder must not exist yet: results already on file are never overwritten. A run moved to the next
@@ -27,6 +28,8 @@ import sys
 import tarfile
 import tempfile
 from pathlib import Path
+
+from xla_cache import merge      # tools/ (this script's folder) is on the path
 
 
 def bring_home(dest: Path, calls: list[Path], gpu_dir: Path | None = Path(".gpu")) -> list[str]:
@@ -88,6 +91,10 @@ def bring_home(dest: Path, calls: list[Path], gpu_dir: Path | None = Path(".gpu"
     caches = [x for c in calls for x in c.glob("xla-cache.tar.gz")]
     if caches and gpu_dir is not None:
         gpu_dir.mkdir(exist_ok=True)
+        if (gpu_dir / "xla-cache.tar.gz").is_file():
+            overflow = gpu_dir.with_name(".xla") / "xla-cache.tar.gz"
+            n = merge(gpu_dir / "xla-cache.tar.gz", overflow)
+            done.append(f"{gpu_dir / 'xla-cache.tar.gz'}'s programs to the front of {overflow} ({n} in all)")
         shutil.copy(caches[-1], gpu_dir / "xla-cache.tar.gz")
         done.append(f"{caches[-1]} -> {gpu_dir / 'xla-cache.tar.gz'}")
     return done

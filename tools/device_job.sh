@@ -52,12 +52,14 @@ fi
 # Here, after copying a lease's xla-cache.tar.gz to .gpu/:   bash tools/device_job.sh fit
 #   A call takes at most 64 MiB: the checkout's files (tracked and untracked-not-ignored) and the carried .whl and .gpu.
 #   The checkout grows with every session's results; the carried compilation cache is what gives way: fit keeps its
-#   first (most useful) programs within the room the rest leaves (tools/xla_cache.py, `room_mb`).
+#   first (most useful) programs within the room the rest leaves (tools/xla_cache.py, `room_mb`); those that give way
+#   go to the overflow, .xla/xla-cache.tar.gz (git-ignored), which the next lease's first call carries alone:
+#   `bash tools/device_job.sh place .xla` (carry: [".xla"]) unpacks it on the machine.
 if [ "$1" = fit ]; then
   cache=.gpu/xla-cache.tar.gz
   [ -f $cache ] || { echo "[device_job] no $cache: nothing to fit"; exit 0; }
   { git ls-files -z; git ls-files -z --others --exclude-standard; find .whl .gpu -type f ! -path $cache -print0 2>/dev/null; } |
-    python3 "$(dirname "$0")/xla_cache.py" fit $cache
+    python3 "$(dirname "$0")/xla_cache.py" fit $cache .xla/xla-cache.tar.gz
   exit "${PIPESTATUS[1]}"      # fit's own (find fails where .whl is missing, which changes nothing)
 fi
 # Here, after a lease:   bash tools/device_job.sh home results/<study>_s<session> <files_at> [<files_at> ...]
@@ -95,6 +97,10 @@ fi
 need_out() { [ -n "$OUT" ] || { echo "\$OUT is not set: run this through the device tool" >&2; exit 2; }; }
 if [ "$1" = place ]; then
   [ $# -eq 2 ] || { echo "usage: bash tools/device_job.sh place <folder of parts>" >&2; exit 2; }
+  if [ -f "$2/xla-cache.tar.gz" ]; then      # the cache's overflow (fit, here): into the cache before any training
+    exec python3 "$(dirname "$0")/xla_cache.py" unpack "$2/xla-cache.tar.gz" \
+      "${MJX_MORPH_XLA_CACHE:-$HOME/.cache/mjx_morph/xla}"
+  fi
   exec python3 "$(dirname "$0")/move_runs.py" place "$2" moving
 fi
 if [ "$1" = send ]; then
@@ -138,9 +144,11 @@ export PYTHONPATH=$site:$PWD PYTHONUNBUFFERED=1
 # JAX's compilation cache: a fresh machine starts from the programs an earlier lease brought back (DEVICE_JOB_SAVE_XLA=1
 # packs them into $OUT/xla-cache.tar.gz; copy it to .gpu/ here), which serve where the GPU model and code are the same
 export MJX_MORPH_XLA_CACHE=${MJX_MORPH_XLA_CACHE:-$HOME/.cache/mjx_morph/xla}
-# (--continue calls too where the machine has no cache yet: the first training call after `place` calls is one)
-if [ -f .gpu/xla-cache.tar.gz ] && { [ $continuing = 0 ] || [ ! -d "$MJX_MORPH_XLA_CACHE" ]; }; then
-  python3 tools/xla_cache.py unpack .gpu/xla-cache.tar.gz "$MJX_MORPH_XLA_CACHE"
+# (--continue calls too where this machine has not unpacked it yet: the first training call after `place` calls is
+# one, and `place .xla` may have made the cache already)
+if [ -f .gpu/xla-cache.tar.gz ] && { [ $continuing = 0 ] || [ ! -f "$MJX_MORPH_XLA_CACHE.gpu-unpacked" ]; }; then
+  python3 tools/xla_cache.py unpack .gpu/xla-cache.tar.gz "$MJX_MORPH_XLA_CACHE" &&
+    touch "$MJX_MORPH_XLA_CACHE.gpu-unpacked"
 fi
 if [ -d .gpu/pairs ]; then      # the searches `prepare` made (read only if selfcontact.py has not changed since)
   export MJX_MORPH_PAIR_CACHE=$PWD/.gpu/pairs

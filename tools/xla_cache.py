@@ -2,8 +2,10 @@
 
     python3 tools/xla_cache.py pack <cache dir> <archive.tar.gz> [max MiB]    # this lease's programs first
     python3 tools/xla_cache.py unpack <archive.tar.gz> <cache dir>
-    python3 tools/xla_cache.py fit <archive.tar.gz> < <the other files that travel, NUL-separated>
-                                    # here: keep its first programs within the room the other files leave
+    python3 tools/xla_cache.py fit <archive.tar.gz> [<overflow.tar.gz>] < <the other files that travel, NUL-separated>
+                                    # here: keep its first programs within the room the other files leave, and
+                                    # those that give way (and the overflow's own) in the overflow, within the room
+                                    # of a call that carries the checkout and the overflow alone
 
 A fresh machine compiles the train step for ~100-150 s in a lease's first call; the programs compiled in an earlier
 lease serve it when they travel (`.gpu/xla-cache.tar.gz`, carried). JAX reads an entry only when its key matches: the
@@ -17,12 +19,19 @@ what earlier leases brought, those read in this lease before the others (`pack`)
 lease's programs first whatever their kind, its four new sweeps (9.6 MiB) left room for one model's train step alone,
 and the model it had read from the carried cache lost its own. Plain Python (no JAX): it runs before the wheels are
 installed and after the command ended.
+
+The room beside the checkout and the wheels holds two models' training programs (~5.7 MiB each on an H100; session
+74), fewer than the model-topology pairs of a lease that runs two models on whichever of two H100 hosts comes, and a
+miss costs ~60-90 s of compilation (sessions 73-74). So what gives way is kept here too, in the overflow
+(`.xla/xla-cache.tar.gz`, with the programs of the archive `home` replaced), which a lease's first call carries
+alone: `bash tools/device_job.sh place .xla` unpacks it on the machine before the training calls.
 """
 from __future__ import annotations
 
 import os
 import sys
 import tarfile
+from contextlib import ExitStack
 from pathlib import Path
 
 MAX_MB = 15.0       # what one file from $OUT may be (16 MiB), less a margin
@@ -85,30 +94,79 @@ def unpack(archive: Path, cache: Path) -> int:
         members = [m for m in tar.getmembers() if m.isfile()]
         new = [m for m in members if not ((cache / m.name).is_file() and (cache / m.name).stat().st_size == m.size)]
         tar.extractall(cache, members=new, filter="data")
-    carried_list(cache).write_text("".join(f"{m.name}\n" for m in members))
+    marker = carried_list(cache)          # every archive unpacked on this machine (the overflow's and .gpu's) counts
+    listed = marker.read_text().split("\n") if marker.is_file() else []
+    names = list(dict.fromkeys([n for n in listed if n] + [m.name for m in members]))
+    marker.write_text("".join(f"{n}\n" for n in names))
     return len(members)
 
 
-def fit(archive: Path, max_mb: float) -> tuple[int, int]:
+def _write(out: Path, members: list[tuple[tarfile.TarFile, tarfile.TarInfo]]) -> None:
+    """`members` (each with the archive it is read from) into `out`, their times kept, through a temporary file."""
+    tmp = out.with_name(out.name + ".part")
+    with tarfile.open(tmp, "w:gz") as w:
+        for tar, m in members:
+            w.addfile(m, tar.extractfile(m))
+    tmp.replace(out)
+
+
+def _within(members: list, limit: int) -> tuple[list, list]:
+    """`members` split into those kept while their sizes add up to at most `limit` bytes (one that would cross it is
+    left out, and smaller later ones still go, as in `pack`) and the rest."""
+    keep, rest, size = [], [], 0
+    for tm in members:
+        if size + tm[1].size <= limit:
+            size += tm[1].size
+            keep.append(tm)
+        else:
+            rest.append(tm)
+    return keep, rest
+
+
+def fit(archive: Path, max_mb: float, overflow: Path | None = None, overflow_mb: float = 0.0) -> tuple[int, int, int]:
     """Rewrite `archive` with its first members (pack's order: the most useful first) while their sizes add up to at
-    most `max_mb` MiB (one that would cross it is left out, as in `pack`), their times kept for `unpack`: so the carry
-    stays within what a call takes as the checkout grows (tools/device_job.sh fit). Returns (members kept, before)."""
-    limit, size = int(max_mb * 2 ** 20), 0
-    with tarfile.open(archive, "r:gz") as tar:
-        members = [m for m in tar.getmembers() if m.isfile()]
-        keep = []
-        for m in members:
-            if size + m.size > limit:
-                continue
-            size += m.size
-            keep.append(m)
+    most `max_mb` MiB, their times kept for `unpack`: so the carry stays within what a call takes as the checkout grows
+    (tools/device_job.sh fit). With `overflow`, the members that gave way go there, followed by the overflow's own
+    that neither archive keeps already, within `overflow_mb` MiB (none left: no overflow). Returns (members kept,
+    members before, members in the overflow)."""
+    with ExitStack() as stack:
+        tar = stack.enter_context(tarfile.open(archive, "r:gz"))
+        members = [(tar, m) for m in tar.getmembers() if m.isfile()]
+        keep, rest = _within(members, int(max_mb * 2 ** 20))
+        spilled = []
+        if overflow is not None:
+            old = []
+            if overflow.is_file():
+                otar = stack.enter_context(tarfile.open(overflow, "r:gz"))
+                seen = {m.name for _, m in members}
+                old = [(otar, m) for m in otar.getmembers() if m.isfile() and m.name not in seen]
+            spilled, _ = _within(rest + old, int(overflow_mb * 2 ** 20))
+            if spilled:
+                overflow.parent.mkdir(parents=True, exist_ok=True)
+                _write(overflow, spilled)
+            elif overflow.is_file():
+                overflow.unlink()
         if len(keep) < len(members):
-            tmp = archive.with_name(archive.name + ".part")
-            with tarfile.open(tmp, "w:gz") as out:
-                for m in keep:
-                    out.addfile(m, tar.extractfile(m))
-            tmp.replace(archive)
-    return len(keep), len(members)
+            _write(archive, keep)
+    return len(keep), len(members), len(spilled)
+
+
+def merge(first: Path, into: Path) -> int:
+    """`into` rewritten as `first`'s members followed by its own that `first` lacks (by name), times kept: `home`
+    keeps the programs of the archive a lease's new cache replaces, ahead of the older overflow. Returns the members
+    of `into` after."""
+    if not first.is_file():
+        return 0
+    with ExitStack() as stack:
+        a = stack.enter_context(tarfile.open(first, "r:gz"))
+        members = [(a, m) for m in a.getmembers() if m.isfile()]
+        if into.is_file():
+            b = stack.enter_context(tarfile.open(into, "r:gz"))
+            seen = {m.name for _, m in members}
+            members += [(b, m) for m in b.getmembers() if m.isfile() and m.name not in seen]
+        into.parent.mkdir(parents=True, exist_ok=True)
+        _write(into, members)
+    return len(members)
 
 
 def room_mb(files: list[str]) -> float:
@@ -140,19 +198,29 @@ def main(argv: list[str]) -> int:
         print(f"[xla_cache] {n} compiled programs from {argv[1]} in {argv[2]} (used only where the GPU model, JAX "
               "and the program are the same)")
         return 0
-    if len(argv) == 2 and argv[0] == "fit":
-        room = room_mb([f for f in sys.stdin.read().split("\0") if f])
+    if len(argv) in (2, 3) and argv[0] == "fit":
+        files = [f for f in sys.stdin.read().split("\0") if f]
+        room = room_mb(files)
         print(f"[xla_cache] what else travels: {CARRY_MB - MARGIN_MB - room:.1f} MiB of {CARRY_MB:.0f}")
         if room <= 0:
             print(f"[xla_cache] no room for {argv[1]}: what else travels takes the {CARRY_MB:.0f} MiB already; "
                   "carry less", file=sys.stderr)
             return 1
-        kept, count = fit(Path(argv[1]), room)
+        overflow = Path(argv[2]) if len(argv) == 3 else None
+        # the overflow's call carries the checkout alone beside it (not the wheels, not .gpu)
+        overflow_room = room_mb([f for f in files if not f.startswith((".whl/", ".gpu/"))]) if overflow else 0.0
+        kept, count, spilled = fit(Path(argv[1]), room, overflow, overflow_room)
         print(f"[xla_cache] {argv[1]}: {kept} of {count} compiled programs kept within {room:.1f} MiB "
               f"({Path(argv[1]).stat().st_size / 2 ** 20:.1f} MiB packed)")
+        if overflow is not None:
+            size = f" ({overflow.stat().st_size / 2 ** 20:.1f} MiB packed)" if overflow.is_file() else ""
+            print(f"[xla_cache] {overflow}: {spilled} compiled programs within {overflow_room:.1f} MiB{size}"
+                  + (f"; carry it in the lease's first call: bash tools/device_job.sh place {overflow.parent} "
+                     f"(carry: [\"{overflow.parent}\"])" if spilled else ""))
         return 0
     print("usage: python3 tools/xla_cache.py pack <cache dir> <archive.tar.gz> [max MiB] | "
-          "unpack <archive.tar.gz> <cache dir> | fit <archive.tar.gz> (the other files on stdin)", file=sys.stderr)
+          "unpack <archive.tar.gz> <cache dir> | fit <archive.tar.gz> [<overflow.tar.gz>] (the other files on stdin)",
+          file=sys.stderr)
     return 2
 
 
