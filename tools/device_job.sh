@@ -95,11 +95,12 @@ fi
 # call's reply. Every call logs the clock.
 [ -f .lease-start ] || date +%s > .lease-start
 need_out() { [ -n "$OUT" ] || { echo "\$OUT is not set: run this through the device tool" >&2; exit 2; }; }
+# JAX's compilation cache on the machine (`place .xla` and every command's call unpack into it; below)
+export MJX_MORPH_XLA_CACHE=${MJX_MORPH_XLA_CACHE:-$HOME/.cache/mjx_morph/xla}
 if [ "$1" = place ]; then
   [ $# -eq 2 ] || { echo "usage: bash tools/device_job.sh place <folder of parts>" >&2; exit 2; }
   if [ -f "$2/xla-cache.tar.gz" ]; then      # the cache's overflow (fit, here): into the cache before any training
-    exec python3 "$(dirname "$0")/xla_cache.py" unpack "$2/xla-cache.tar.gz" \
-      "${MJX_MORPH_XLA_CACHE:-$HOME/.cache/mjx_morph/xla}"
+    exec python3 "$(dirname "$0")/xla_cache.py" unpack "$2/xla-cache.tar.gz" "$MJX_MORPH_XLA_CACHE"
   fi
   exec python3 "$(dirname "$0")/move_runs.py" place "$2" moving
 fi
@@ -143,7 +144,6 @@ export PYTHONPATH=$site:$PWD PYTHONUNBUFFERED=1
 [ -d .gpu/unimals_100 ] && export MJX_MORPH_UNIMALS=$PWD/.gpu/unimals_100
 # JAX's compilation cache: a fresh machine starts from the programs an earlier lease brought back (DEVICE_JOB_SAVE_XLA=1
 # packs them into $OUT/xla-cache.tar.gz; copy it to .gpu/ here), which serve where the GPU model and code are the same
-export MJX_MORPH_XLA_CACHE=${MJX_MORPH_XLA_CACHE:-$HOME/.cache/mjx_morph/xla}
 # (--continue calls too where this machine has not unpacked it yet: the first training call after `place` calls is
 # one, and `place .xla` may have made the cache already)
 if [ -f .gpu/xla-cache.tar.gz ] && { [ $continuing = 0 ] || [ ! -f "$MJX_MORPH_XLA_CACHE.gpu-unpacked" ]; }; then

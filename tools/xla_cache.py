@@ -110,6 +110,15 @@ def _write(out: Path, members: list[tuple[tarfile.TarFile, tarfile.TarInfo]]) ->
     tmp.replace(out)
 
 
+def _members(stack: ExitStack, archive: Path, skip: set[str] = frozenset()) -> list:
+    """The files of `archive` (opened in `stack`), each with the archive to read it from, but those named in `skip`;
+    none where `archive` is missing."""
+    if not archive.is_file():
+        return []
+    tar = stack.enter_context(tarfile.open(archive, "r:gz"))
+    return [(tar, m) for m in tar.getmembers() if m.isfile() and m.name not in skip]
+
+
 def _within(members: list, limit: int) -> tuple[list, list]:
     """`members` split into those kept while their sizes add up to at most `limit` bytes (one that would cross it is
     left out, and smaller later ones still go, as in `pack`) and the rest."""
@@ -130,16 +139,11 @@ def fit(archive: Path, max_mb: float, overflow: Path | None = None, overflow_mb:
     that neither archive keeps already, within `overflow_mb` MiB (none left: no overflow). Returns (members kept,
     members before, members in the overflow)."""
     with ExitStack() as stack:
-        tar = stack.enter_context(tarfile.open(archive, "r:gz"))
-        members = [(tar, m) for m in tar.getmembers() if m.isfile()]
+        members = _members(stack, archive)
         keep, rest = _within(members, int(max_mb * 2 ** 20))
         spilled = []
         if overflow is not None:
-            old = []
-            if overflow.is_file():
-                otar = stack.enter_context(tarfile.open(overflow, "r:gz"))
-                seen = {m.name for _, m in members}
-                old = [(otar, m) for m in otar.getmembers() if m.isfile() and m.name not in seen]
+            old = _members(stack, overflow, {m.name for _, m in members})
             spilled, _ = _within(rest + old, int(overflow_mb * 2 ** 20))
             if spilled:
                 overflow.parent.mkdir(parents=True, exist_ok=True)
@@ -158,12 +162,8 @@ def merge(first: Path, into: Path) -> int:
     if not first.is_file():
         return 0
     with ExitStack() as stack:
-        a = stack.enter_context(tarfile.open(first, "r:gz"))
-        members = [(a, m) for m in a.getmembers() if m.isfile()]
-        if into.is_file():
-            b = stack.enter_context(tarfile.open(into, "r:gz"))
-            seen = {m.name for _, m in members}
-            members += [(b, m) for m in b.getmembers() if m.isfile() and m.name not in seen]
+        members = _members(stack, first)
+        members += _members(stack, into, {m.name for _, m in members})
         into.parent.mkdir(parents=True, exist_ok=True)
         _write(into, members)
     return len(members)
