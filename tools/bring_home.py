@@ -13,7 +13,8 @@
 - the newest compilation cache (`xla-cache.tar.gz`) into .gpu/, where the next lease's first call starts from it
   (device_job.sh then fits it to the room the checkout leaves); the programs of the archive it replaces go to the
   front of the overflow, .xla/xla-cache.tar.gz (tools/xla_cache.py), so that none is lost before `fit` chooses;
-- then the runs' "Health" and "Rates per phase" tables, from a report built in a temporary folder.
+- then the runs' "Returns (main runs)", "Rates per phase" and "Health" tables, from a report built in a temporary
+  folder (the evaluations' means, normalised, with their CIs over robots: what a lease's notes quote).
 
 The results folder must not exist yet: results already on file are never overwritten. A run moved to the next
 lease comes home with the lease that finishes it; parts of a moved run among the calls' files are named, with the
@@ -120,7 +121,7 @@ def on_file(run: Path, root: Path) -> Path | None:
     return None
 
 
-def report_tables(dest: Path, titles=("Rates per phase", "Health")) -> str:
+def report_tables(dest: Path, titles=("Returns (main runs)", "Rates per phase", "Health")) -> str:
     """The named tables of a report over the runs of `dest` (built in a temporary folder), as markdown."""
     with tempfile.TemporaryDirectory() as tmp:
         p = subprocess.run([sys.executable, "-m", "experiments.report", f"runs=[{dest}]", f"out={tmp}"],

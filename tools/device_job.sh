@@ -65,7 +65,7 @@ fi
 # Here, after a lease:   bash tools/device_job.sh home results/<study>_s<session> <files_at> [<files_at> ...]
 #   (the calls' folders in the order they ran): the runs of the last call that brought any into the results folder
 #   (new: nothing on file is overwritten), each call's log as call<k>.log, the newest compilation cache into .gpu/
-#   (then fit), and the runs' Health and Rates tables (tools/bring_home.py).
+#   (then fit), and the runs' Returns, Rates and Health tables (tools/bring_home.py).
 if [ "$1" = home ]; then
   [ $# -ge 3 ] || { echo "usage: bash tools/device_job.sh home <results folder> <files_at> [<files_at> ...]" >&2; exit 2; }
   shift
