@@ -589,17 +589,64 @@ def test_the_converged_physics_manifest_pools_one_physics_geometry_and_precision
     assert "physics" in converged_violations([capped], "a3c4a671", "ft")[str(capped.path)]
 
 
+INCLINE_SETS = {"val", "test", "train", "variants"}
+
+
+def incline_design_violations(pooled: list[tuple[str, int, set]], pending: list[tuple[str, int]],
+                              looks: int) -> list[str]:
+    """What breaks incline's converged-physics design (docs/results.md, fixed in session 70, its continuation in
+    session 81): R-MoMo and ModuMorph, seeds 0-2 for the one look (looks 1), seeds 3-4 pending after it for the
+    second, at five a side (looks 2). `pooled`: (arch, seed, the sets it was evaluated on) of each pooled run;
+    `pending`: (arch, seed). A look pools exactly its seeds of both models, each evaluated on val, test70, the train
+    robots and the variants; before the first look nothing is pooled and only seeds 0-2 wait; after the last, nothing."""
+    out = []
+    models = {"rmomo", "modumorph"}
+    for arch, seed in [(a, s) for a, s, _ in pooled] + list(pending):
+        if arch not in models or seed not in range(5):
+            out.append(f"{arch} seed {seed}: not R-MoMo or ModuMorph with a seed of 0-4")
+    if looks not in (1, 2):
+        out.append(f"looks {looks}: the design has two looks, at three and at five seeds a side")
+        return out
+    n = 3 if looks == 1 else 5
+    have = {(a, s) for a, s, _ in pooled}
+    if pooled and have != {(a, s) for a in models for s in range(n)}:
+        out.append(f"look {looks} pools {sorted(have)}, not seeds 0-{n - 1} of both models")
+    if not pooled and looks == 2:
+        out.append("look 2 with nothing pooled")
+    for a, s, sets in pooled:
+        if not INCLINE_SETS <= set(sets):
+            out.append(f"{a} seed {s} pooled without {sorted(INCLINE_SETS - set(sets))}")
+    waiting = range(3) if not pooled else range(3, 5) if looks == 1 else range(0)
+    out += [f"{a} seed {s} pending at look {looks} ({'nothing pooled' if not pooled else 'pooled'})"
+            for a, s in pending if s not in waiting]
+    return out
+
+
+def test_the_incline_design_rule_fails_where_the_design_is_broken():
+    full = lambda n: [(a, s, INCLINE_SETS) for a in ("rmomo", "modumorph") for s in range(n)]
+    assert not incline_design_violations([], [("rmomo", 0), ("modumorph", 2)], 1)         # before the first look
+    assert not incline_design_violations(full(3), [("rmomo", 3)], 1)                     # after it, seed 3 waits
+    assert not incline_design_violations(full(5), [], 2)                                 # the second look
+    assert incline_design_violations(full(3)[:5], [], 1)                                 # a look one run short
+    assert incline_design_violations(full(3)[:5] + [("modumorph", 2, {"val", "test", "train"})], [], 1)  # no variants
+    assert incline_design_violations([], [("rmomo", 3)], 1)                              # seed 3 before the look
+    assert incline_design_violations(full(3), [("rmomo", 1)], 1)                         # a seed left behind
+    assert incline_design_violations(full(5), [("rmomo", 5)], 2)                         # seed 5, and pending after
+    assert incline_design_violations(full(3), [], 2)                                     # look 2 at three a side
+    assert incline_design_violations([("metamorph", 0, INCLINE_SETS)], [], 1)
+
+
 def test_the_converged_incline_manifest_follows_its_design():
     """results/claims_converged_incline.yaml (incline on the converged physics, design fixed in session 70) holds
-    every incline run of results/ab_geometry_s*/ once, each of physics 8e90ddac at 1,024 envs x 80 steps in fp32,
-    R-MoMo or ModuMorph, a seed of 0-2, each seed once; nothing is pooled before both models have three seeds (the
-    design's one look), and then nothing stays pending. The task rule is seen to fail on an ft run of that study."""
+    every incline run of results/ab_geometry_s*/ once, each of physics 8e90ddac at 1,024 envs x 80 steps in fp32, and
+    follows the design's looks (`incline_design_violations`). The task rule is seen to fail on an ft run of that
+    study."""
     m = _check_manifest("claims_converged_incline.yaml", "ab_geometry_s*/incline-*", pooled=False)
-    runs = [read_run(p) for p in m.runs + m.pending]
-    assert runs and {r.arch for r in runs} <= {"rmomo", "modumorph"} and {r.seed for r in runs} <= {0, 1, 2}
-    assert not converged_violations(runs, "8e90ddac", "incline")
-    assert m.looks == {"incline/rmomo": 1}
-    assert not m.runs or (len(m.runs) == 6 and not m.pending), (m.runs, m.pending)
+    pooled, pending = [read_run(p) for p in m.runs], [read_run(p) for p in m.pending]
+    assert pooled + pending and not converged_violations(pooled + pending, "8e90ddac", "incline")
+    assert set(m.looks) == {"incline/rmomo"}, m.looks
+    assert not incline_design_violations([(r.arch, r.seed, set(r.evals)) for r in pooled],
+                                         [(r.arch, r.seed) for r in pending], m.looks["incline/rmomo"])
     ft = read_run(read_manifest(ROOT / "results" / "claims_converged.yaml").runs[0])
     assert "task" in converged_violations([ft], "8e90ddac", "incline")[str(ft.path)]
 
