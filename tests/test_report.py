@@ -600,14 +600,15 @@ def incline_design_violations(pooled: list[tuple[str, int, set]], pending: list[
     robots and the variants; before the first look nothing is pooled and only seeds 0-2 wait; after the last, nothing."""
     out = []
     models = {"rmomo", "modumorph"}
-    for arch, seed in [(a, s) for a, s, _ in pooled] + list(pending):
+    named = [(a, s) for a, s, _ in pooled]
+    for arch, seed in named + list(pending):
         if arch not in models or seed not in range(5):
             out.append(f"{arch} seed {seed}: not R-MoMo or ModuMorph with a seed of 0-4")
     if looks not in (1, 2):
         out.append(f"looks {looks}: the design has two looks, at three and at five seeds a side")
         return out
     n = 3 if looks == 1 else 5
-    have = {(a, s) for a, s, _ in pooled}
+    have = set(named)
     if (pooled or looks == 2) and have != {(a, s) for a in models for s in range(n)}:      # look 1 may not have come
         out.append(f"look {looks} pools {sorted(have)}, not seeds 0-{n - 1} of both models")
     for a, s, sets in pooled:
