@@ -28,9 +28,9 @@ PRECISIONS: dict[str, tuple[jnp.dtype, str]] = {
     "bf16": (jnp.bfloat16, "default"),
 }
 
-#: the original code's arithmetic. Chosen by issue 13's learning comparison (docs/results.md, "Precision"; 2 seeds x 20 M
-#: steps, ft): TF32 ended below fp32's seed range for both R-MoMo and ModuMorph, bf16 within it for R-MoMo (its
-#: ModuMorph arm has not run), so neither fast mode is the default yet; both stay one key away.
+#: the original code's arithmetic. Chosen by issue 13's learning comparison (docs/results-log.md, "Precision"; 2
+#: seeds x 20 M steps, ft): TF32 ended below fp32's seed range for both R-MoMo and ModuMorph, bf16 within it for
+#: R-MoMo (its ModuMorph arm has not run), so neither fast mode is the default yet; both stay one key away.
 DEFAULT = "fp32"
 
 

@@ -18,7 +18,7 @@
 Design choices where the original papers and code leave a gap, all overridable by flags:
 - The cell's output REPLACES the embedding as the transformer input (`cell_residual=False`); the spec's
   design B says the LSTM output "feeds" the transformer. Adding it to the embedding instead gave R-MoMo no gain
-  (1 seed x 20 M steps on ft against 2 of the default; docs/results.md, "R-MoMo: the cell's output ...").
+  (1 seed x 20 M steps on ft against 2 of the default; docs/results-log.md, "R-MoMo: the cell's output ...").
 - sqrt(D) (EMBEDDING_SCALE) stays on the embedding, i.e. BEFORE the cell (`scale_after_cell=False`): the
   cell is inserted after the embedding step exactly as the feed-forward model computes it. This is the flag's
   default here; runs of rmomo, grumomo and rmemo get `scale_after_cell=True` from `RECOMMENDED` (measured, below:
@@ -31,7 +31,7 @@ Design choices where the original papers and code leave a gap, all overridable b
   metamorph), and R-MeMo trained 39% below MetaMorph over the first 18 M steps on ft (2 seeds each, session 26).
   Runs of rmemo get `scale_context=True` from `RECOMMENDED` (sqrt(D) multiplies the context MLP's output too;
   measured, below); `embed_input="obs_action"` with `context_mlp=False` (the cell reads all 52 features, as
-  R-MoMo's does) closed the gap as well, a little less (study ab_rmemo_context_path, docs/results.md).
+  R-MoMo's does) closed the gap as well, a little less (study ab_rmemo_context_path, docs/results-log.md).
 - The previous action is clipped to [-1, 1] (the executed control), masked and zeroed at resets (model.py).
 - The plus-variants put their two layers where the recurrent cell sits (per limb, between embedding and
   transformer, output replacing the embedding, ReLU between the layers only), so that "recurrent cell vs
@@ -76,14 +76,14 @@ _STRUCTURE: dict[str, dict[str, Any]] = {
 #: not set the key, and then recorded in the run's config.yaml. `make_model` itself keeps the spec's first reading
 #: (the flags' defaults above), so a saved `null` always means that reading.
 #: rmomo / grumomo scale_after_cell=True: 2 seeds x 9.5 M steps on ft, 2.3x the training return of the sqrt(D)-before-
-#: the-cell reading (docs/results.md, "R-MoMo: sqrt(D) before or after the cell"); grumomo follows rmomo so that the
-#: LSTM/GRU ablation differs in the cell alone.
+#: the-cell reading (docs/results-log.md, "R-MoMo: sqrt(D) before or after the cell"); grumomo follows rmomo so that
+#: the LSTM/GRU ablation differs in the cell alone.
 #: rmemo context_mlp=True: 2 seeds x 20 M steps on ft, training return 763 / 371 against 237 / 209 without the context
-#: MLP, both seeds above both from 8 M steps on (docs/results.md, "R-MeMo: with and without the context MLP"); design
-#: A's R-MeMo never sees the morphology. +42,240 parameters over the paper's table (3,610,499).
+#: MLP, both seeds above both from 8 M steps on (docs/results-log.md, "R-MeMo: with and without the context MLP");
+#: design A's R-MeMo never sees the morphology. +42,240 parameters over the paper's table (3,610,499).
 #: rmemo scale_context=True: 2 seeds x 18 M steps on ft, training return 1337 / 1532 against 1016 / 542 with the context
-#: MLP's output unscaled, test70 1028 against 836, the variants (seed 1) 1801 against 943 (docs/results.md, "R-MeMo's
-#: context path"); the paper's text (the context MLP added to the cell output) with both under sqrt(D).
+#: MLP's output unscaled, test70 1028 against 836, the variants (seed 1) 1801 against 943 (docs/results-log.md,
+#: "R-MeMo's context path"); the paper's text (the context MLP added to the cell output) with both under sqrt(D).
 RECOMMENDED: dict[str, dict[str, Any]] = {
     "rmomo": {"scale_after_cell": True},
     "grumomo": {"scale_after_cell": True},

@@ -25,7 +25,7 @@ class PPOConfig:
     max_grad_norm: float = 0.5
     kl_threshold: float = 0.05      # approximate-KL early stop (0.05 = MetaMorph's KL_TARGET_COEF 5; the paper also uses 0.03
                                     # and picks per model on val: all four models keep 0.05, two seeds an
-                                    # arm; docs/results.md, sessions 34-38)
+                                    # arm; docs/results-log.md, sessions 34-38)
     sampling: str = "balanced"      # robot sampling at resets: balanced | uniform
     minibatch_blocks: Optional[int] = None   # G: each minibatch takes 1/G of its windows from each of G equal blocks
                                     # of envs (stratified); None: the devices the envs are sharded over, so one device

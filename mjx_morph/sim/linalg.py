@@ -9,7 +9,7 @@ implementation of the innermost `use(name)` block being traced:
               (`resolve`; on a CPU the kernels would run interpreted, far slower than the loops). Measured on an
               H200 (docs/benchmarks.md, sessions 61-62): pallas is 15% faster on the 64- and 256-env rollouts, a
               tie at 1,024, MuJoCo C agrees as closely (check_sim), and an R-MoMo seed trained on it learned no worse
-              than the two on jax (docs/results.md, session 62). At 2,048 and 4,096 matrices a call they are 10%
+              than the two on jax (docs/results-log.md, session 62). At 2,048 and 4,096 matrices a call they are 10%
               and 6% slower (bench_cholesky, session 63; the variants sweep runs chunks of 4,800); kept there too:
               the choice is made per trace, where MJX's vmap hides the batch, and the Cholesky is part of a step;
     "jax"     JAX's own functions (cuSOLVER / cuBLAS on a GPU); on a CPU with jaxlib < 0.11 the pure-JAX loops of
