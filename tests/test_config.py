@@ -314,6 +314,38 @@ def test_study_time_limit_evaluates_what_fits(capsys, monkeypatch, tmp_path, uni
     assert "ft-rmomo-main-s0: variants left for the rerun" in capsys.readouterr().out
 
 
+def test_study_starts_the_next_run_only_once_the_last_ones_evaluations_are_done(capsys, monkeypatch, tmp_path,
+                                                                                 unimals):
+    """A lease's last call names the run it finishes before the one it starts ('archs=[rmomo,modumorph]', docs/
+    results.md's plan): the study evaluates what the finished run still lacks, and trains the next run only once
+    those evaluations are all done, so that no decision falls between a lease's calls."""
+    from types import SimpleNamespace
+    from experiments import study
+    steps = {"ft-rmomo-main-s0": 245, "ft-modumorph-main-s0": 0}
+
+    class Dir:
+        def __init__(self, d):
+            self.name = Path(d).name
+
+        def latest_step(self):
+            return steps[self.name]
+    trained, calls = [], []
+    monkeypatch.setattr(study, "RunDir", Dir)
+    monkeypatch.setattr(study, "train", lambda cfg, callbacks=None: trained.append(Path(cfg.run_dir).name))
+    monkeypatch.setattr(study, "evaluated", lambda d, s, step, episodes: s != "variants")
+    monkeypatch.setattr(study, "evaluate_run", lambda d, sets, episodes: calls.append((Path(d).name, list(sets))))
+    monkeypatch.setattr(study, "use_compile_cache", lambda path: None)
+    monkeypatch.setattr(study, "time", SimpleNamespace(monotonic=lambda: 0.0))
+    args = ["paper", "archs=[rmomo,modumorph]", "seeds=[0]", "evaluate=[test,variants]", f"out={tmp_path}",
+            "prepare_eval=false"]
+    short = 0.9 * study.eval_minutes("variants")            # the variants left: ModuMorph's run is not started
+    assert study.main([*args, f"time_limit_min={short}", "--", "stop_at=245"]) == 0
+    assert calls == [] and trained == []
+    assert "evaluation of " in (out := capsys.readouterr().out) and "ft-rmomo-main-s0 left for the rerun" in out
+    assert study.main([*args, "time_limit_min=100", "--", "stop_at=245"]) == 0
+    assert calls == [("ft-rmomo-main-s0", ["variants"])] and trained == ["ft-modumorph-main-s0"]
+
+
 def test_study_prepares_the_evaluations_its_time_limit_will_run(capsys, monkeypatch, tmp_path, unimals):
     """The study trains with the default callbacks and PrepareEvaluation, which prepares the sets that the time
     left after the training will let it evaluate (the same count as after the training); prepare_eval=false: the
