@@ -79,8 +79,8 @@ _STRUCTURE: dict[str, dict[str, Any]] = {
 #: the-cell reading (docs/results-log.md, "R-MoMo: sqrt(D) before or after the cell"); grumomo follows rmomo so that
 #: the LSTM/GRU ablation differs in the cell alone.
 #: rmemo context_mlp=True: 2 seeds x 20 M steps on ft, training return 763 / 371 against 237 / 209 without the context
-#: MLP, both seeds above both from 8 M steps on (docs/results-log.md, "R-MeMo: with and without the context MLP");
-#: design A's R-MeMo never sees the morphology. +42,240 parameters over the paper's table (3,610,499).
+#: MLP, both seeds above both from 8 M steps on (docs/results-log.md, "R-MeMo: the context MLP, and sqrt(D) after the
+#: cell"); design A's R-MeMo never sees the morphology. +42,240 parameters over the paper's table (3,610,499).
 #: rmemo scale_context=True: 2 seeds x 18 M steps on ft, training return 1337 / 1532 against 1016 / 542 with the context
 #: MLP's output unscaled, test70 1028 against 836, the variants (seed 1) 1801 against 943 (docs/results-log.md,
 #: "R-MeMo's context path"); the paper's text (the context MLP added to the cell output) with both under sqrt(D).
