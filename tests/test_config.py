@@ -203,6 +203,18 @@ def test_study_workers_split_the_runs_one_gpu_each(capsys, monkeypatch, unimals)
     assert "only 1 GPU(s) visible (CUDA_VISIBLE_DEVICES=0)" in capsys.readouterr().err
 
 
+def run_dirs_at(steps: dict):
+    """A stand-in for experiments.study's RunDir: each run directory's latest checkpoint read from `steps` by the
+    directory's name (None where it has none)."""
+    class At:
+        def __init__(self, d):
+            self.name = Path(d).name
+
+        def latest_step(self):
+            return steps.get(self.name)
+    return At
+
+
 def test_study_neither_trains_nor_evaluates_a_run_that_starts_broken(capsys, monkeypatch, tmp_path, unimals):
     """A run the loop stopped because it starts broken (its unhealthy.txt, `stop_unhealthy`) is named, not trained
     further and not evaluated; the study goes on with the rest (here its healthy seed, trained alone and side by
@@ -210,13 +222,6 @@ def test_study_neither_trains_nor_evaluates_a_run_that_starts_broken(capsys, mon
     from experiments import study
     from mjx_morph.run import UNHEALTHY
     steps, calls = {}, []
-
-    class Steps:
-        def __init__(self, d):
-            self.name = Path(d).name
-
-        def latest_step(self):
-            return steps.get(self.name)
 
     def fake_train(cfg, callbacks=None):
         seeds = cfg.seeds if cfg.seeds is not None else [cfg.seed]
@@ -229,7 +234,7 @@ def test_study_neither_trains_nor_evaluates_a_run_that_starts_broken(capsys, mon
                 steps[d.name] = 1
             else:
                 steps[d.name] = 245
-    monkeypatch.setattr(study, "RunDir", Steps)
+    monkeypatch.setattr(study, "RunDir", run_dirs_at(steps))
     monkeypatch.setattr(study, "train", fake_train)
     monkeypatch.setattr(study, "evaluated", lambda d, s, step, episodes: False)
     monkeypatch.setattr(study, "evaluate_run", lambda d, sets, episodes: calls.append(("eval", Path(d).name)))
@@ -321,16 +326,8 @@ def test_study_starts_the_next_run_only_once_the_last_ones_evaluations_are_done(
     those evaluations are all done, so that no decision falls between a lease's calls."""
     from types import SimpleNamespace
     from experiments import study
-    steps = {"ft-rmomo-main-s0": 245, "ft-modumorph-main-s0": 0}
-
-    class Dir:
-        def __init__(self, d):
-            self.name = Path(d).name
-
-        def latest_step(self):
-            return steps[self.name]
     trained, calls = [], []
-    monkeypatch.setattr(study, "RunDir", Dir)
+    monkeypatch.setattr(study, "RunDir", run_dirs_at({"ft-rmomo-main-s0": 245, "ft-modumorph-main-s0": 0}))
     monkeypatch.setattr(study, "train", lambda cfg, callbacks=None: trained.append(Path(cfg.run_dir).name))
     monkeypatch.setattr(study, "evaluated", lambda d, s, step, episodes: s != "variants")
     monkeypatch.setattr(study, "evaluate_run", lambda d, sets, episodes: calls.append((Path(d).name, list(sets))))
