@@ -259,7 +259,8 @@ def test_the_overflow_is_placed_first_and_the_first_training_call_still_unpacks_
 def test_fit_spills_what_gives_way_into_the_overflow_and_home_keeps_the_replaced_archive(tmp_path):
     """`fit` with an overflow: the programs that do not fit the carry beside the wheels go to .xla/, ahead of the
     overflow's own, within the room of a call that carries the checkout and .xla alone; `merge` (home, before a new
-    cache replaces .gpu's) puts the replaced archive's programs at the overflow's front, each program once."""
+    cache replaces .gpu's) puts the replaced archive's programs at the overflow's front, each program once; and where
+    the carry has room again, the overflow's programs come back into .gpu's archive, in the overflow's order."""
     import os
     import tarfile
     xla_cache = load_tool("xla_cache")
@@ -288,7 +289,7 @@ def test_fit_spills_what_gives_way_into_the_overflow_and_home_keeps_the_replaced
     (repo / ".whl").mkdir()
     (repo / ".whl" / "w.whl").write_bytes(os.urandom(5 * 2 ** 20))    # beside the wheels: 64 - 1 - 55 MiB
     r = job("fit", cwd=repo)
-    assert r.returncode == 0 and "2 of 3 compiled programs kept" in r.stdout, r.stdout + r.stderr
+    assert r.returncode == 0 and "2 of 4 compiled programs kept" in r.stdout, r.stdout + r.stderr
     assert "xla-cache.tar.gz: 2 compiled programs within" in r.stdout and "place .xla" in r.stdout
     assert names(main) == ["jit__update-a-cache", "jit__rollout-b-cache"]
     assert names(over) == ["jit__init_state-c-cache", "jit__update-old-cache"]      # b is in the main archive
@@ -313,8 +314,56 @@ def test_fit_spills_what_gives_way_into_the_overflow_and_home_keeps_the_replaced
     assert names(main) == ["jit__update-new-cache"]
     assert names(over) == ["jit__update-a-cache", "jit__rollout-b-cache", "jit__init_state-c-cache",
                            "jit__update-old-cache"]
-    kept, count, spilled = xla_cache.fit(main, 100.0, over, 0.0)     # no room for an overflow: it goes
-    assert (kept, count, spilled) == (1, 1, 0) and not over.exists()
+    kept, count, spilled = xla_cache.fit(main, 6.2, over, 100.0)     # room for two more: the overflow's first two
+    assert (kept, count, spilled) == (3, 5, 2)
+    assert names(main) == ["jit__update-new-cache", "jit__update-a-cache", "jit__rollout-b-cache"]
+    assert names(over) == ["jit__init_state-c-cache", "jit__update-old-cache"]
+    with tarfile.open(main) as tar:
+        assert tar.getmember("jit__update-a-cache").mtime == 1_000_000
+    assert xla_cache.fit(main, 100.0, over, 100.0) == (5, 5, 0) and not over.exists()     # room for all: it goes
+    assert names(main)[3:] == ["jit__init_state-c-cache", "jit__update-old-cache"]
+    kept, count, spilled = xla_cache.fit(main, 3.1, over, 0.0)     # no room for an overflow: what gives way is lost
+    assert (kept, count, spilled) == (2, 5, 0) and not over.exists()
+    assert names(main) == ["jit__update-new-cache", "jit__update-a-cache"]
+
+
+def test_slim_wheels_drops_mjxs_test_robots_and_their_record_rows_and_pip_installs_the_rest(tmp_path):
+    """`prepare` rewrites mujoco-mjx's wheel without MJX's own test robots (6.2 MiB of the 64 a call carries, room
+    for the compilation cache): the members under mujoco/mjx/test_data/ and their RECORD rows go, the rest stays byte
+    for byte, pip installs it, and a second run (or a wheel without them) leaves the file untouched."""
+    import sys
+    import zipfile
+    slim_wheels = load_tool("slim_wheels")
+    whl = tmp_path / ".whl"
+    whl.mkdir()
+    wheel = whl / "mujoco_mjx-9.9.9-py3-none-any.whl"
+    keep = {"mujoco/mjx/__init__.py": "X = 1\n", "mujoco/mjx/_src/io.py": "Y = 2\n",
+            "mujoco_mjx-9.9.9.dist-info/METADATA": "Metadata-Version: 2.1\nName: mujoco-mjx\nVersion: 9.9.9\n",
+            "mujoco_mjx-9.9.9.dist-info/WHEEL":
+                "Wheel-Version: 1.0\nGenerator: test\nRoot-Is-Purelib: true\nTag: py3-none-any\n"}
+    drop = {"mujoco/mjx/test_data/humanoid/humanoid.xml": "<mujoco/>\n", "mujoco/mjx/test_data/a.stl": "x" * 5000}
+    record = "".join(f"{n},,\n" for n in [*keep, *drop]) + "mujoco_mjx-9.9.9.dist-info/RECORD,,\n"
+    with zipfile.ZipFile(wheel, "w", zipfile.ZIP_DEFLATED) as z:
+        for name, text in {**keep, **drop, "mujoco_mjx-9.9.9.dist-info/RECORD": record}.items():
+            z.writestr(name, text)
+    other = whl / "trimesh-1.0-py3-none-any.whl"
+    other.write_bytes(wheel.read_bytes())                    # another package's wheel: not touched
+    assert slim_wheels.main([str(whl)]) == 0
+    with zipfile.ZipFile(wheel) as z:
+        assert sorted(z.namelist()) == sorted([*keep, "mujoco_mjx-9.9.9.dist-info/RECORD"])
+        assert all(z.read(n).decode() == text for n, text in keep.items())
+        rows = z.read("mujoco_mjx-9.9.9.dist-info/RECORD").decode().splitlines()
+    assert [r.split(",")[0] for r in rows] == [*keep, "mujoco_mjx-9.9.9.dist-info/RECORD"]
+    assert other.read_bytes() != wheel.read_bytes() and len(zipfile.ZipFile(other).namelist()) == 7
+    stat = wheel.stat()
+    assert slim_wheels.main([str(whl)]) == 0 and wheel.stat().st_mtime_ns == stat.st_mtime_ns      # already slim
+    site = tmp_path / "site"
+    r = subprocess.run([sys.executable, "-m", "pip", "install", "-q", "--no-index", "--no-deps", "--no-compile",
+                        "--target", str(site), str(wheel)], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    assert (site / "mujoco" / "mjx" / "_src" / "io.py").read_text() == "Y = 2\n"
+    assert not (site / "mujoco" / "mjx" / "test_data").exists()
+    assert slim_wheels.main([str(tmp_path / "none")]) == 2
 
 
 def test_fit_shrinks_the_carried_cache_to_the_room_the_checkout_leaves(tmp_path):

@@ -34,6 +34,8 @@ if [ "$1" = prepare ]; then
   # alone: neither training nor evaluation imports them (`mujoco` and `mujoco.mjx` import without them; a smoke run
   # with OpenGL unimportable trains and evaluates), so they stay here. Rendering on the GPU host would need pyopengl.
   rm -f .whl/mujoco_studio-*.whl .whl/pyopengl-*.whl
+  # and mujoco-mjx's wheel loses MJX's own test robots (6.2 MiB), room for the carried cache (tools/slim_wheels.py)
+  python3 "$(dirname "$0")/slim_wheels.py" .whl || exit 1
   [ -d .gpu/unimals_100 ] || { mkdir -p .gpu && cp -r ../shared/unimals_100 .gpu/; } || exit 1
   py=python3; [ -x .venv/bin/python ] && py=.venv/bin/python
   rm -rf .gpu/pairs      # the searches of an earlier version of selfcontact.py are never read again: not carried

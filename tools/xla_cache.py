@@ -20,11 +20,12 @@ lease's programs first whatever their kind, its four new sweeps (9.6 MiB) left r
 and the model it had read from the carried cache lost its own. Plain Python (no JAX): it runs before the wheels are
 installed and after the command ended.
 
-The room beside the checkout and the wheels holds two models' training programs (~5.7 MiB each on an H100; session
-74), fewer than the model-topology pairs of a lease that runs two models on whichever of two H100 hosts comes, and a
-miss costs ~60-90 s of compilation (sessions 73-74). So what gives way is kept here too, in the overflow
-(`.xla/xla-cache.tar.gz`, with the programs of the archive `home` replaced), which a lease's first call carries
-alone: `bash tools/device_job.sh place .xla` unpacks it on the machine before the training calls.
+The room beside the checkout and the wheels holds two or three models' training programs (~5.2-5.7 MiB each on an
+H100; 16.4 MiB of room since session 85's slimmer wheels, tools/slim_wheels.py), fewer than the model-topology pairs
+of a lease that runs two models on whichever of two H100 hosts comes, and a miss costs ~60-110 s of compilation
+(sessions 73-85). So what gives way is kept here too, in the overflow (`.xla/xla-cache.tar.gz`, with the programs of
+the archive `home` replaced), which a lease's first call carries alone: `bash tools/device_job.sh place .xla` unpacks
+it on the machine before the training calls; `fit` takes them back into the carried archive where the room allows.
 """
 from __future__ import annotations
 
@@ -133,24 +134,28 @@ def _within(members: list, limit: int) -> tuple[list, list]:
 
 
 def fit(archive: Path, max_mb: float, overflow: Path | None = None, overflow_mb: float = 0.0) -> tuple[int, int, int]:
-    """Rewrite `archive` with its first members (pack's order: the most useful first) while their sizes add up to at
-    most `max_mb` MiB, their times kept for `unpack`: so the carry stays within what a call takes as the checkout grows
-    (tools/device_job.sh fit). With `overflow`, the members that gave way go there, followed by the overflow's own
-    that neither archive keeps already, within `overflow_mb` MiB (none left: no overflow). Returns (members kept,
-    members before, members in the overflow)."""
+    """Rewrite `archive` with the most useful programs on hand while their sizes add up to at most `max_mb` MiB,
+    their times kept for `unpack`: so the carry stays within what a call takes as the checkout grows, and takes back
+    what it has room for when what else travels shrinks (tools/device_job.sh fit). On hand: the archive's programs in
+    pack's order (the most useful first), then, with `overflow`, the overflow's own that the archive lacks, in its
+    order (`merge` puts the programs of the archive a lease's new cache replaced first). With `overflow`, those that
+    gave way go there, within `overflow_mb` MiB (none left: no overflow). Returns (programs kept, programs on hand,
+    programs in the overflow)."""
     with ExitStack() as stack:
         members = _members(stack, archive)
+        before = [m.name for _, m in members]
+        if overflow is not None:
+            members += _members(stack, overflow, set(before))
         keep, rest = _within(members, int(max_mb * 2 ** 20))
         spilled = []
         if overflow is not None:
-            old = _members(stack, overflow, {m.name for _, m in members})
-            spilled, _ = _within(rest + old, int(overflow_mb * 2 ** 20))
+            spilled, _ = _within(rest, int(overflow_mb * 2 ** 20))
             if spilled:
                 overflow.parent.mkdir(parents=True, exist_ok=True)
                 _write(overflow, spilled)
             elif overflow.is_file():
                 overflow.unlink()
-        if len(keep) < len(members):
+        if [m.name for _, m in keep] != before:
             _write(archive, keep)
     return len(keep), len(members), len(spilled)
 
