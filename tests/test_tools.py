@@ -529,8 +529,9 @@ def test_the_move_call_packs_on_the_machine_and_sends_back_what_fits(tmp_path):
     cache, then DEVICE_JOB_MOVE_OUT naming two runs, as a lease of several GPUs moves them): each run's checkpoint is
     packed into outgoing/ on the machine, the first parts come back in $OUT beside the log and the runs within a
     call's 8 files, the rest wait for `send` calls, and the parts of all calls put both runs back here byte for
-    byte."""
+    byte; the call says how long its packing took, which must end within the call's 600 s."""
     import os
+    import re
     move_runs = load_tool("move_runs")
     gpu = stand_in_machine(tmp_path / "gpu")
     run = gpu / "runs" / "studies" / "paper" / "ft-rmemo-main-s9"
@@ -555,6 +556,8 @@ def test_the_move_call_packs_on_the_machine_and_sends_back_what_fits(tmp_path):
     assert len(back1) == 5                             # 5 of 9: the small run's and 60 MiB beside the log and runs
     assert len(list(outs[0].iterdir())) <= 8 and sum(p.stat().st_size for p in outs[0].iterdir()) <= 64 * 2 ** 20
     assert "4 part(s) left in outgoing/" in r.stdout and "1 more call(s)" in r.stdout
+    assert re.search(r"zs: exit status 0; packed in \d+ s, \d+ s into the call", r.stdout), r.stdout     # timed
+    assert "packed in" in (outs[0] / "zs.log").read_text().splitlines()[-1]          # in the log that comes home
     r = job("send", cwd=gpu, out=outs[1], **env)
     assert r.returncode == 0 and "sent 4 part(s)" in r.stdout and "no part left" in r.stdout, r.stdout + r.stderr
     r = job("send", cwd=gpu, out=outs[2], **env)

@@ -173,6 +173,7 @@ else
   echo "[device_job] $name: no time left before $stop: the command was not run" | tee -a "$OUT/$name.log"; rc=124
 fi
 [ $rc -eq 124 ] && [ $left -gt 0 ] && echo "[device_job] $name: interrupted $stop"
+ended=$SECONDS      # what follows (the runs' artefacts, the cache, a move's parts) is timed: it must end by 600 s
 dirs=$(ls -d runs/studies/* runs/* 2>/dev/null | grep -vx runs/studies | paste -sd, -)   # a study's runs: <study>/<run>
 [ -n "$dirs" ] && python3 -m experiments.collect "runs=[$dirs]" out="$OUT/$name-runs.tar.gz" 2>&1 | tail -1
 [ "${DEVICE_JOB_SAVE_XLA:-0}" = 1 ] && python3 tools/xla_cache.py pack "$MJX_MORPH_XLA_CACHE" "$OUT/xla-cache.tar.gz"
@@ -181,5 +182,5 @@ for run in ${DEVICE_JOB_MOVE_OUT:-}; do   # an unfinished run to move (above): i
     python3 -m experiments.collect "runs=[$run]" out="outgoing/$move" checkpoint=true part_mb=15 2>&1 | tail -1
 done
 [ -n "${DEVICE_JOB_MOVE_OUT:-}" ] && python3 tools/move_runs.py send outgoing "$OUT"   # the rest: `send` calls
-echo "[device_job] $name: exit status $rc"
+echo "[device_job] $name: exit status $rc; packed in $(( SECONDS - ended )) s, $SECONDS s into the call" | tee -a "$OUT/$name.log"
 exit $rc
