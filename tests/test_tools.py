@@ -328,8 +328,8 @@ def test_fit_spills_what_gives_way_into_the_overflow_and_home_keeps_the_replaced
 
 
 def test_slim_wheels_drops_mjxs_test_robots_and_their_record_rows_and_pip_installs_the_rest(tmp_path):
-    """`prepare` rewrites mujoco-mjx's wheel without MJX's own test robots (6.2 MiB of the 64 a call carries, room
-    for the compilation cache): the members under mujoco/mjx/test_data/ and their RECORD rows go, the rest stays byte
+    """`prepare` removes the viewer's wheel and rewrites mujoco-mjx's without MJX's own test robots (6.2 MiB of the
+    64 a call carries, room for the compilation cache): the members under mujoco/mjx/test_data/ and their RECORD rows go, the rest stays byte
     for byte, pip installs it, and a second run (or a wheel without them) leaves the file untouched."""
     import sys
     import zipfile
@@ -348,7 +348,10 @@ def test_slim_wheels_drops_mjxs_test_robots_and_their_record_rows_and_pip_instal
             z.writestr(name, text)
     other = whl / "trimesh-1.0-py3-none-any.whl"
     other.write_bytes(wheel.read_bytes())                    # another package's wheel: not touched
+    viewer = whl / "mujoco_studio-9.9.9-py3-none-any.whl"
+    viewer.write_bytes(b"viewer")                            # the viewer's wheel: not carried at all
     assert slim_wheels.main([str(whl)]) == 0
+    assert not viewer.exists()
     with zipfile.ZipFile(wheel) as z:
         assert sorted(z.namelist()) == sorted([*keep, "mujoco_mjx-9.9.9.dist-info/RECORD"])
         assert all(z.read(n).decode() == text for n, text in keep.items())

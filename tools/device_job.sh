@@ -30,11 +30,8 @@ set -o pipefail
 if [ "$1" = prepare ]; then
   [ -d ../shared ] || { echo "../shared is missing: clone the project beside it" >&2; exit 2; }
   ls .whl/*.whl >/dev/null 2>&1 || ../shared/tools/gpu-wheels.sh || exit 1
-  # mujoco-studio is MuJoCo's viewer (12.8 MB of the 64 MiB a call carries) and pyopengl (3.2 MB) serves rendering
-  # alone: neither training nor evaluation imports them (`mujoco` and `mujoco.mjx` import without them; a smoke run
-  # with OpenGL unimportable trains and evaluates), so they stay here. Rendering on the GPU host would need pyopengl.
-  rm -f .whl/mujoco_studio-*.whl .whl/pyopengl-*.whl
-  # and mujoco-mjx's wheel loses MJX's own test robots (6.2 MiB), room for the carried cache (tools/slim_wheels.py)
+  # what the GPU host never reads stays here, room for the carried cache (tools/slim_wheels.py): mujoco-studio and
+  # pyopengl whole (rendering alone), MJX's own test robots from mujoco-mjx's wheel (6.2 MiB)
   python3 "$(dirname "$0")/slim_wheels.py" .whl || exit 1
   [ -d .gpu/unimals_100 ] || { mkdir -p .gpu && cp -r ../shared/unimals_100 .gpu/; } || exit 1
   py=python3; [ -x .venv/bin/python ] && py=.venv/bin/python
@@ -182,5 +179,6 @@ for run in ${DEVICE_JOB_MOVE_OUT:-}; do   # an unfinished run to move (above): i
     python3 -m experiments.collect "runs=[$run]" out="outgoing/$move" checkpoint=true part_mb=15 2>&1 | tail -1
 done
 [ -n "${DEVICE_JOB_MOVE_OUT:-}" ] && python3 tools/move_runs.py send outgoing "$OUT"   # the rest: `send` calls
-echo "[device_job] $name: exit status $rc; packed in $(( SECONDS - ended )) s, $SECONDS s into the call" | tee -a "$OUT/$name.log"
+echo "[device_job] $name: exit status $rc; packed in $(( SECONDS - ended )) s, $SECONDS s into the call" |
+  tee -a "$OUT/$name.log"
 exit $rc
