@@ -146,6 +146,11 @@ BAD_XML = [
     ("bad_number", lambda s: s.replace('range="-60 0"', 'range="-60 abc"'), r'range="-60 abc" is not a list of numbers'),
     ("second_geom", lambda s: s.replace('<geom name="limb/0" ', '<geom type="sphere" size="0.1"/><geom name="limb/0" '),
      r'<body name="limb/0">: expected exactly one capsule geom, found 2'),
+    ("capsule_torso", lambda s: s.replace('<geom name="torso/0" type="sphere" size="0.1"',
+                                          '<geom name="torso/0" type="capsule" fromto="0 0 0 0.1 0 0" size="0.1"'),
+     r'<geom name="torso/0">: type "capsule" is not allowed; expected "sphere"'),
+    ("no_torso_geom", lambda s: re.sub(r'<geom name="torso/0"[^>]*/>', "", s),
+     r'<body name="torso/0">: expected exactly one sphere geom, found 0'),
 ]
 
 

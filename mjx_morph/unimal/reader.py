@@ -169,14 +169,9 @@ def load_robot(xml_path: str | Path, metadata_path: str | Path | None = None, na
     tjoints = torso.findall("joint") + torso.findall("freejoint")
     if len(tjoints) != 1 or not (tjoints[0].tag == "freejoint" or defaults.resolve(tjoints[0], {"type": "hinge"})["type"] == "free"):
         raise RobotError(where, _tag(torso), "expected exactly one free joint on the torso")
-    tgeoms = torso.findall("geom")
-    if len(tgeoms) != 1:
-        raise RobotError(where, _tag(torso), f"expected exactly one sphere geom, found {len(tgeoms)} geoms")
-    tg = defaults.resolve(tgeoms[0], _GEOM_DEFAULTS)
-    if tg["type"] != "sphere":
-        raise RobotError(where, _tag(tgeoms[0]), f'type "{tg["type"]}" is not allowed; expected "sphere"')
-    torso_radius = _floats(where, tgeoms[0], "size", (1, 2, 3), tg.get("size"))[0]
-    torso_density = _positive(where, tgeoms[0], "density", tg["density"])
+    tgeom, tg = _one_geom(where, torso, "sphere", defaults)
+    torso_radius = _floats(where, tgeom, "size", (1, 2, 3), tg.get("size"))[0]
+    torso_density = _positive(where, tgeom, "density", tg["density"])
 
     limbs: list[Limb] = []
     limb_elems: list[ET.Element] = []
@@ -234,6 +229,17 @@ def _check_no_rotation(where: str, body: ET.Element) -> None:
             raise RobotError(where, _tag(body), f'attribute "{attr}": UNIMAL bodies are never rotated')
 
 
+def _one_geom(where: str, body: ET.Element, kind: str, defaults: _Defaults) -> tuple[ET.Element, dict]:
+    """The body's single geom and its resolved attributes; an error unless there is exactly one, of type `kind`."""
+    geoms = body.findall("geom")
+    if len(geoms) != 1:
+        raise RobotError(where, _tag(body), f"expected exactly one {kind} geom, found {len(geoms)}")
+    g = defaults.resolve(geoms[0], _GEOM_DEFAULTS)
+    if g["type"] != kind:
+        raise RobotError(where, _tag(geoms[0]), f'type "{g["type"]}" is not allowed; expected "{kind}"')
+    return geoms[0], g
+
+
 def _read_limb(where: str, body: ET.Element, parent: int, defaults: _Defaults, degrees: bool) -> Limb:
     m = _LIMB_RE.match(body.get("name", ""))
     if not m:
@@ -244,23 +250,18 @@ def _read_limb(where: str, body: ET.Element, parent: int, defaults: _Defaults, d
     for el in body:
         if el.tag in ("freejoint", "inertial", "composite", "flexcomp"):
             raise RobotError(where, _tag(el), f"<{el.tag}> is not allowed in a UNIMAL limb")
-    geoms = body.findall("geom")
-    if len(geoms) != 1:
-        raise RobotError(where, _tag(body), f"expected exactly one capsule geom, found {len(geoms)}")
-    g = defaults.resolve(geoms[0], _GEOM_DEFAULTS)
-    if g["type"] != "capsule":
-        raise RobotError(where, _tag(geoms[0]), f'type "{g["type"]}" is not allowed; expected "capsule"')
+    geom, g = _one_geom(where, body, "capsule", defaults)
     if g.get("fromto") is None:
-        raise RobotError(where, _tag(geoms[0]), 'attribute "fromto" is missing; expected "0 0 0 x y z"')
-    ft = _floats(where, geoms[0], "fromto", 6, g["fromto"])
+        raise RobotError(where, _tag(geom), 'attribute "fromto" is missing; expected "0 0 0 x y z"')
+    ft = _floats(where, geom, "fromto", 6, g["fromto"])
     if any(abs(v) > 1e-9 for v in ft[:3]):
-        raise RobotError(where, _tag(geoms[0]), f'fromto="{g["fromto"]}": a UNIMAL capsule starts at the body origin (0 0 0)')
+        raise RobotError(where, _tag(geom), f'fromto="{g["fromto"]}": a UNIMAL capsule starts at the body origin (0 0 0)')
     if np.linalg.norm(ft[3:]) < 1e-6:
-        raise RobotError(where, _tag(geoms[0]), f'fromto="{g["fromto"]}": zero-length capsule')
-    radius = _floats(where, geoms[0], "size", (1, 2, 3), g.get("size"))[0]
+        raise RobotError(where, _tag(geom), f'fromto="{g["fromto"]}": zero-length capsule')
+    radius = _floats(where, geom, "size", (1, 2, 3), g.get("size"))[0]
     if radius <= 0:
-        raise RobotError(where, _tag(geoms[0]), f'size="{g.get("size")}": expected a positive radius')
-    density = _positive(where, geoms[0], "density", g["density"])
+        raise RobotError(where, _tag(geom), f'size="{g.get("size")}": expected a positive radius')
+    density = _positive(where, geom, "density", g["density"])
 
     joints: list[Joint] = []
     for el in body.findall("joint"):
