@@ -329,8 +329,9 @@ def test_fit_spills_what_gives_way_into_the_overflow_and_home_keeps_the_replaced
 
 def test_slim_wheels_drops_mjxs_test_robots_and_their_record_rows_and_pip_installs_the_rest(tmp_path):
     """`prepare` removes the viewer's wheel and rewrites mujoco-mjx's without MJX's own test robots (6.2 MiB of the
-    64 a call carries, room for the compilation cache): the members under mujoco/mjx/test_data/ and their RECORD rows go, the rest stays byte
-    for byte, pip installs it, and a second run (or a wheel without them) leaves the file untouched."""
+    64 a call carries, room for the compilation cache): the members under mujoco/mjx/test_data/ and their RECORD
+    rows go, the rest stays byte for byte, pip installs it, and a second run (or a wheel without them) leaves the
+    file untouched."""
     import sys
     import zipfile
     slim_wheels = load_tool("slim_wheels")
