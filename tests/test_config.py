@@ -322,7 +322,7 @@ def test_study_time_limit_evaluates_what_fits(capsys, monkeypatch, tmp_path, uni
 def test_study_starts_the_next_run_only_once_the_last_ones_evaluations_are_done(capsys, monkeypatch, tmp_path,
                                                                                  unimals):
     """A lease's last call names the run it finishes before the one it starts ('archs=[rmomo,modumorph]', docs/
-    results.md's plan): the study evaluates what the finished run still lacks, and trains the next run only once
+    leases.md's plan): the study evaluates what the finished run still lacks, and trains the next run only once
     those evaluations are all done, so that no decision falls between a lease's calls."""
     from types import SimpleNamespace
     from experiments import study

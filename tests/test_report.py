@@ -593,7 +593,7 @@ INCLINE_SETS = {"val", "test", "train", "variants"}
 
 def incline_design_violations(pooled: list[tuple[str, int, set]], pending: list[tuple[str, int]],
                               looks: int) -> list[str]:
-    """What breaks incline's converged-physics design (docs/results.md, fixed in session 70, its continuation in
+    """What breaks incline's converged-physics design (docs/leases.md, fixed in session 70, its continuation in
     session 81): R-MoMo and ModuMorph, seeds 0-2 for the one look (looks 1), seeds 3-4 pending after it for the
     second, at five a side (looks 2). `pooled`: (arch, seed, the sets it was evaluated on) of each pooled run;
     `pending`: (arch, seed). A look pools exactly its seeds of both models, each evaluated on val, test70, the train
@@ -650,7 +650,7 @@ def test_the_converged_incline_manifest_follows_its_design():
 
 
 def design_100m_violations(runs: list[Run]) -> list[str]:
-    """What breaks the 100 M-step claims' design (docs/results.md, plan item 6, fixed in session 50 before any of
+    """What breaks the 100 M-step claims' design (docs/leases.md, plan item 6, fixed in session 50 before any of
     its runs): the paper's schedule run to its end (total_steps 1e8, no stop_at), the converged solver (16
     iterations), one precision for every run. One line per run and rule broken."""
     bad = [f"{r.path}: {why}" for r in runs for why, broken in [
@@ -672,7 +672,7 @@ def test_the_100m_claims_manifest_holds_every_100m_run_and_only_the_design():
     assert design_100m_violations(capped[:1] + [read_run(ROOT / "results" / "ab_precision_s51" /
                                                          "ft-modumorph-bf16-s0")])[-1].startswith("precisions")
     if not (ROOT / "results" / "claims100.yaml").exists() and not list((ROOT / "results").glob("paper100_s*")):
-        pytest.skip("no 100 M-step run on file yet (docs/results.md, plan item 6)")
+        pytest.skip("no 100 M-step run on file yet (docs/leases.md, plan item 6)")
     m = _check_manifest("claims100.yaml", "paper100_s*")
     assert not design_100m_violations([read_run(p) for p in m.runs + m.pending])
 

@@ -188,7 +188,7 @@ def test_run_moved_in_parts_resumes_like_uninterrupted(full_run, exp, tmp_path):
 def test_stop_at_ends_the_run_for_good(full_run, exp, tmp_path):
     """stop_at=N ends the run at iteration N of its schedule; rerunning it trains no further (unlike stop_after).
     stop_at is free on resume: rerun with stop_at=null, the run trains on to its schedule's end and ends where the
-    uninterrupted run does (a 20 M-step look, total_steps=1e8 stop_at=245, trained on to 100 M: docs/results.md)."""
+    uninterrupted run does (a 20 M-step look, total_steps=1e8 stop_at=245, trained on to 100 M: docs/leases.md)."""
     d = tmp_path / "stop_at"
     for _ in range(2):
         train(config(f"run_dir={d}", "stop_at=1"), exp)

@@ -751,7 +751,7 @@ def _arms(doc: Document, ctx: ReportContext) -> None:
     order, on training and on each eval set both evaluated (`_arm_sides`): seeds, means over seeds, the difference
     with its 95% Welch CI over seeds and the two-sided p, and how many of the first arm's seeds lie below, within and
     above the second arm's seed range (issue 13's test of a fast mode, "within the seed spread", read as "no seed
-    below it": docs/results.md, plan item 4); then the non-inferiority test the claims' training claims use (the
+    below it": docs/leases.md, plan item 4); then the non-inferiority test the claims' training claims use (the
     first arm at least the second's mean less CLAIM_MARGIN of it: one-sided Welch p) and the seeds a side it would
     need for CLAIM_POWER at the observed difference and spreads, which a seed-range rule cannot show at any seed
     count. A description with no verdict: the claims section tests the paper's claims, which compare architectures,
@@ -800,7 +800,7 @@ def _arms(doc: Document, ctx: ReportContext) -> None:
                        "robots (at the env steps both evaluated, as the claims take them); means over seeds, the "
                        "difference with its 95% Welch CI over seeds (none with fewer than 2 seeds a side), the "
                        "two-sided Welch p, and how many of a's seeds fall below, within and above b's seed range "
-                       "(a fast mode passes where none of its training seeds is below: docs/results.md, plan item "
+                       "(a fast mode passes where none of its training seeds is below: docs/leases.md, plan item "
                        f"4); then the one-sided Welch p that a's mean is at least b's less {CLAIM_MARGIN:.0%} of it "
                        "(the training claims' test: a match shown where p < 0.025) and the seeds a side that test "
                        f"would need for {CLAIM_POWER:.0%} power at the observed difference and spreads (– where the "
