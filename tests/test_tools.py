@@ -409,8 +409,9 @@ def test_a_run_moved_in_parts_is_placed_call_by_call_and_put_back_before_the_com
     """tools/move_runs.py with device_job.sh: a run's newest checkpoint packed in parts as DEVICE_JOB_MOVE_OUT does
     (experiments.collect checkpoint=true, named by `name`), staged here two parts a folder, each folder placed on the
     machine by one call (`place`), then the next call puts the run back under runs/studies/<study>/ before anything
-    else, byte for byte, and removes the parts; with a part missing or corrupt, or the run already there, it stops
-    with exit status 4 before running anything and writes nothing of the run."""
+    else, byte for byte, and removes the parts; parts of a run already there at their checkpoint or later (a warm
+    machine keeps a run it moved out) are dropped; with a part missing or corrupt, or the run there at an older
+    checkpoint, it stops with exit status 4 before running anything and writes nothing of the run."""
     import os
     import sys
     from experiments import collect
@@ -445,12 +446,21 @@ def test_a_run_moved_in_parts_is_placed_call_by_call_and_put_back_before_the_com
     assert (back / "checkpoints" / "65" / "state" / "data").read_bytes() == blob
     assert (back / "config.yaml").is_file() and not (back / "checkpoints" / "40").exists()
     assert list((repo / "moving").iterdir()) == []
-    # the same parts again, now that the run is back: refused, nothing replaced
+    # the same parts again, now that the run is back (a warm machine keeps a run it moved out): dropped, the run kept
+    for p in parts:
+        (repo / "moving" / p.name).write_bytes(p.read_bytes())
+    r = job("zs", "true", cwd=repo, out=out)
+    assert "is here already at checkpoint 65" in r.stdout and "parts were dropped" in r.stdout, r.stdout + r.stderr
+    assert list((repo / "moving").iterdir()) == [] and "exists already" not in r.stderr
+    assert (back / "checkpoints" / "65" / "state" / "data").read_bytes() == blob
+    # ... but where the run here is older than the parts: refused, nothing replaced
+    (back / "checkpoints" / "65").rename(back / "checkpoints" / "30")
     for p in parts:
         (repo / "moving" / p.name).write_bytes(p.read_bytes())
     marker = repo / "ran"
     r = job("zs", "touch", str(marker), cwd=repo, out=out)
     assert r.returncode == 4 and "exists already" in r.stderr and not marker.exists()
+    assert (back / "checkpoints" / "30").is_dir() and not (back / "checkpoints" / "65").exists()
     import shutil
     shutil.rmtree(repo / "runs")
     (repo / "moving" / parts[1].name).unlink()                    # a lost middle part

@@ -18,6 +18,7 @@ packing call and up to three `send` calls, a move in one `place` call per two pa
     python3 tools/move_runs.py stage <files_at> [<files_at> ...] .mv      # here: parts into .mv1/, .mv2/ (two each)
     python3 tools/move_runs.py place .mv1 moving         # there (device_job.sh place .mv1): kept on the machine
     python3 tools/move_runs.py assemble moving runs/studies     # there, before a command: the runs put back
+                                    # (parts of a run the machine still holds at their checkpoint or later dropped)
 
 Plain Python (no JAX): it runs before the wheels are installed.
 """
@@ -165,6 +166,36 @@ def place(folder: Path, moving: Path) -> int:
     return len(parts)
 
 
+def newest_checkpoint(names) -> int:
+    """The highest <N> of checkpoints/<N> among `names` (paths relative to the run); -1 for none."""
+    steps = [int(parts[1]) for parts in (n.split("/") for n in names)
+             if len(parts) > 1 and parts[0] == "checkpoints" and parts[1].isdigit()]
+    return max(steps, default=-1)
+
+
+def drop_held(moving: Path, studies: Path) -> list[str]:
+    """Remove the parts of every moved run of `moving` that is here already at their checkpoint or later: a warm
+    machine keeps a run it moved out (session 89), so parts placed again on it are not needed. Returns one line per
+    run dropped; a run held at an older checkpoint (or none) keeps its parts, and `assemble` refuses it."""
+    lines = []
+    for (study, run), parts in parts_in(moving).items():
+        target = studies / study / run
+        if not target.is_dir():
+            continue
+        here = newest_checkpoint(str(p.relative_to(target)) for p in (target / "checkpoints").glob("*"))
+        try:
+            with open_parts(parts) as tar:
+                packed = newest_checkpoint(m.name.split("/", 1)[1] for m in tar.getmembers() if "/" in m.name)
+        except READ_ERRORS:
+            continue        # incomplete or corrupt: assemble names it
+        if packed >= 0 and here >= packed:
+            for p in parts:
+                p.unlink()
+            lines.append(f"{target} is here already at checkpoint {here} (this machine kept it after moving it out), "
+                         f"its {len(parts)} placed part(s) hold checkpoint {packed}: the parts were dropped")
+    return lines
+
+
 def assemble(moving: Path, studies: Path) -> list[Path]:
     """Put every moved run of `moving` back as <studies>/<study>/<run> and remove its parts; returns the runs. A run
     whose parts are incomplete or corrupt, which holds anything but <run>/..., or whose directory exists already,
@@ -227,6 +258,8 @@ def main(argv: list[str]) -> int:
             kept = sorted(p.name for p in Path(argv[2]).iterdir())
             print(f"[move_runs] {n} part(s) of {argv[1]} kept in {argv[2]}, which holds {', '.join(kept)}")
         elif len(argv) == 3 and argv[0] == "assemble":
+            for line in drop_held(Path(argv[1]), Path(argv[2])):
+                print(f"[move_runs] {line}")
             for run in assemble(Path(argv[1]), Path(argv[2])):
                 print(f"[move_runs] moved in: {run} (its study resumes it)")
         else:
