@@ -527,7 +527,7 @@ def test_a_move_sends_what_fits_back_and_the_rest_call_by_call(tmp_path):
     (repo / "moving").mkdir()
     for folder in (".mv1", ".mv2"):
         assert job("place", folder, cwd=repo, out=calls[2]).returncode == 0
-    assert move_runs.assemble(repo / "moving", repo / "runs" / "studies")
+    assert move_runs.assemble(repo / "moving", repo / "runs" / "studies")[0]
     assert (repo / "runs/studies/paper/ft-rmemo-main-s9/checkpoints/65/data").read_bytes() == blob
     # a part that came back twice with other bytes: refused
     other = tmp_path / "other"
@@ -583,7 +583,7 @@ def test_the_move_call_packs_on_the_machine_and_sends_back_what_fits(tmp_path):
     moving = here / "moving"
     for f in folders:
         move_runs.place(f, moving)
-    back = {p.name: p for p in move_runs.assemble(moving, here / "runs" / "studies")}
+    back = {p.name: p for p in move_runs.assemble(moving, here / "runs" / "studies")[0]}
     assert set(back) == {"ft-rmemo-main-s9", "ft-metamorph-main-s9"}
     assert (back["ft-rmemo-main-s9"] / "checkpoints" / "65" / "data").read_bytes() == blob
     assert (back["ft-metamorph-main-s9"] / "checkpoints" / "40" / "data").read_bytes() == small_blob

@@ -173,39 +173,17 @@ def newest_checkpoint(names) -> int:
     return max(steps, default=-1)
 
 
-def drop_held(moving: Path, studies: Path) -> list[str]:
-    """Remove the parts of every moved run of `moving` that is here already at their checkpoint or later: a warm
-    machine keeps a run it moved out (session 89), so parts placed again on it are not needed. Returns one line per
-    run dropped; a run held at an older checkpoint (or none) keeps its parts, and `assemble` refuses it."""
-    lines = []
-    for (study, run), parts in parts_in(moving).items():
-        target = studies / study / run
-        if not target.is_dir():
-            continue
-        here = newest_checkpoint(str(p.relative_to(target)) for p in (target / "checkpoints").glob("*"))
-        try:
-            with open_parts(parts) as tar:
-                packed = newest_checkpoint(m.name.split("/", 1)[1] for m in tar.getmembers() if "/" in m.name)
-        except READ_ERRORS:
-            continue        # incomplete or corrupt: assemble names it
-        if packed >= 0 and here >= packed:
-            for p in parts:
-                p.unlink()
-            lines.append(f"{target} is here already at checkpoint {here} (this machine kept it after moving it out), "
-                         f"its {len(parts)} placed part(s) hold checkpoint {packed}: the parts were dropped")
-    return lines
-
-
-def assemble(moving: Path, studies: Path) -> list[Path]:
-    """Put every moved run of `moving` back as <studies>/<study>/<run> and remove its parts; returns the runs. A run
-    whose parts are incomplete or corrupt, which holds anything but <run>/..., or whose directory exists already,
-    raises MoveError naming it, and nothing of it is written."""
-    done = []
+def assemble(moving: Path, studies: Path) -> tuple[list[Path], list[str]]:
+    """Put every moved run of `moving` back as <studies>/<study>/<run> and remove its parts; returns the runs put
+    back, and a line for each run whose parts were dropped because the machine holds it already at their checkpoint
+    or later (a warm machine keeps a run it moved out, session 89). A run whose parts are incomplete or corrupt,
+    which holds anything but <run>/..., or whose directory exists at an older checkpoint (or none), raises MoveError
+    naming it, and nothing of it is written."""
+    done, dropped = [], []
     for (study, run), parts in parts_in(moving).items():
         target = studies / study / run
         label = f"{moving}/move.{study}.{run}.tar.gz.000-{len(parts) - 1:03d}"
-        if target.exists():
-            raise MoveError(f"{label}: {target} exists already; the moved run would replace it")
+        held_here = target.exists()
         tmp = studies / study / f".{run}.moving"      # extracted here first: a failure leaves nothing of the run
         shutil.rmtree(tmp, ignore_errors=True)
         try:
@@ -216,18 +194,29 @@ def assemble(moving: Path, studies: Path) -> list[Path]:
                               or ".." in m.name.split("/") or not (m.isfile() or m.isdir())]
                     if strays or not members:
                         raise MoveError(f"{label}: expected the files of {run}/ only, found {strays[:3] or 'nothing'}")
-                    # the data filter where this Python has it (3.11.4+); the check above keeps to <run>/ either way
-                    tar.extractall(tmp, **({"filter": "data"} if hasattr(tarfile, "data_filter") else {}))
+                    if held_here:
+                        packed = newest_checkpoint(m.name.split("/", 1)[-1] for m in members)
+                        held = newest_checkpoint(f"checkpoints/{p.name}" for p in (target / "checkpoints").glob("*"))
+                        if not 0 <= packed <= held:
+                            raise MoveError(f"{label}: {target} exists already (checkpoint {held}, the parts' "
+                                            f"{packed}); the moved run would replace it")
+                        dropped.append(f"{target} is here already at checkpoint {held} (this machine kept it after "
+                                       f"moving it out), its {len(parts)} placed part(s) hold checkpoint {packed}: "
+                                       "the parts were dropped")
+                    else:
+                        # the data filter where this Python has it (3.11.4+); the check above keeps to <run>/ anyway
+                        tar.extractall(tmp, **({"filter": "data"} if hasattr(tarfile, "data_filter") else {}))
             except READ_ERRORS as e:
                 raise MoveError(f"{label}: incomplete or corrupt ({type(e).__name__}: {e}); a lost last part looks "
                                 "so") from None
-            (tmp / run).rename(target)
+            if not held_here:
+                (tmp / run).rename(target)
+                done.append(target)
         finally:
             shutil.rmtree(tmp, ignore_errors=True)
         for p in parts:
             p.unlink()
-        done.append(target)
-    return done
+    return done, dropped
 
 
 def main(argv: list[str]) -> int:
@@ -258,9 +247,10 @@ def main(argv: list[str]) -> int:
             kept = sorted(p.name for p in Path(argv[2]).iterdir())
             print(f"[move_runs] {n} part(s) of {argv[1]} kept in {argv[2]}, which holds {', '.join(kept)}")
         elif len(argv) == 3 and argv[0] == "assemble":
-            for line in drop_held(Path(argv[1]), Path(argv[2])):
+            done, dropped = assemble(Path(argv[1]), Path(argv[2]))
+            for line in dropped:
                 print(f"[move_runs] {line}")
-            for run in assemble(Path(argv[1]), Path(argv[2])):
+            for run in done:
                 print(f"[move_runs] moved in: {run} (its study resumes it)")
         else:
             print(__doc__.split("\n\n")[2], file=sys.stderr)
