@@ -35,20 +35,25 @@ import jax.numpy as jnp
 from .layers import Dtype, cast, uniform
 
 
-class LSTMCell(nn.Module):
+class _TorchCell(nn.Module):
+    """PyTorch's parameters of a cell with `num_gates` gates: w_ih (I, G*H), w_hh (H, G*H), b_ih and b_hh (G*H,)."""
     in_features: int
     hidden: int
     dtype: Dtype = None
 
-    num_gates = 4
+    num_gates = 0
 
     def setup(self):
-        h, i = self.hidden, self.in_features
+        h, i, g = self.hidden, self.in_features, self.num_gates
         init = uniform(1.0 / math.sqrt(h))
-        self.w_ih = self.param("w_ih", init, (i, 4 * h))
-        self.w_hh = self.param("w_hh", init, (h, 4 * h))
-        self.b_ih = self.param("b_ih", init, (4 * h,))
-        self.b_hh = self.param("b_hh", init, (4 * h,))
+        self.w_ih = self.param("w_ih", init, (i, g * h))
+        self.w_hh = self.param("w_hh", init, (h, g * h))
+        self.b_ih = self.param("b_ih", init, (g * h,))
+        self.b_hh = self.param("b_hh", init, (g * h,))
+
+
+class LSTMCell(_TorchCell):
+    num_gates = 4
 
     def input_proj(self, x: jax.Array) -> jax.Array:
         x, w, b = cast(self.dtype, x, self.w_ih, self.b_ih + self.b_hh)
@@ -63,20 +68,8 @@ class LSTMCell(nn.Module):
         return {"h": h, "c": c}, h
 
 
-class GRUCell(nn.Module):
-    in_features: int
-    hidden: int
-    dtype: Dtype = None
-
+class GRUCell(_TorchCell):
     num_gates = 3
-
-    def setup(self):
-        h, i = self.hidden, self.in_features
-        init = uniform(1.0 / math.sqrt(h))
-        self.w_ih = self.param("w_ih", init, (i, 3 * h))
-        self.w_hh = self.param("w_hh", init, (h, 3 * h))
-        self.b_ih = self.param("b_ih", init, (3 * h,))
-        self.b_hh = self.param("b_hh", init, (3 * h,))
 
     def input_proj(self, x: jax.Array) -> jax.Array:
         x, w, b = cast(self.dtype, x, self.w_ih, self.b_ih)
